@@ -1,0 +1,35 @@
+# Two commands do all set-up on a fresh machine (Python 3.11 with venv):
+#   make run    synthesize the default design table and simulate the closed loop
+#   make test   run the test suite (fast tests; `make test-slow` runs the rest)
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.installed
+
+.PHONY: run test test-slow bench lint clean
+
+$(STAMP): pyproject.toml constraints.txt
+	$(PY) -m venv $(VENV)
+	$(BIN)/pip install --quiet --upgrade pip
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]'
+	touch $(STAMP)
+
+run: $(STAMP)
+	$(BIN)/drake-cert synthesize --out results/designs.yaml
+	$(BIN)/drake-cert verify results/designs.yaml
+	$(BIN)/drake-cert simulate --designs results/designs.yaml --plot results/closed_loop.png
+
+test: $(STAMP)
+	$(BIN)/python -m pytest -q
+
+test-slow: $(STAMP)
+	$(BIN)/python -m pytest -q -m slow
+
+bench: $(STAMP)
+	for f in benchmarks/bench_*.py; do $(BIN)/python $$f || exit 1; done
+
+lint: $(STAMP)
+	$(BIN)/ruff check .
+
+clean:
+	rm -rf $(VENV) results

@@ -1,0 +1,307 @@
+"""Typed YAML configuration: vehicle, road conditions and presets, controller and synthesis.
+
+Files are read with Drake's ``yaml_load_typed`` into the dataclasses below. Every field
+must be given (no silent defaults), unknown keys are errors, and non-physical values are
+rejected; each problem raises one :class:`ConfigError` naming the key and the file.
+Units are SI; conventions (README): e1 > 0 left of the lane centre, curvature > 0 left
+turn, steering > 0 left, ``psidot_des = V * kappa``.
+"""
+
+
+import dataclasses
+import math
+import typing
+from importlib import resources
+from pathlib import Path
+
+import yaml
+from pydrake.common.yaml import yaml_load_typed
+
+from drake_cert.errors import ConfigError
+
+GRAVITY_MPS2 = 9.81
+
+
+@dataclasses.dataclass
+class VehicleParams:
+    """Single-track vehicle (Rajamani ch. 2-3). C_f = C_r = C per tire (2C per axle)."""
+
+    mass_kg: float = 1573.0  # m
+    yaw_inertia_kg_m2: float = 2873.0  # I_z
+    lf_m: float = 1.1  # CG to front axle
+    lr_m: float = 1.58  # CG to rear axle
+    steering_limit_rad: float = 0.5  # |u| saturation
+    lane_width_m: float = 3.5
+    car_width_m: float = 1.8
+
+    @property
+    def lane_margin_m(self) -> float:
+        """Largest |e1| with the car still inside its lane: (lane - car) / 2."""
+        return 0.5 * (self.lane_width_m - self.car_width_m)
+
+    def validate(self, where: str = "vehicle") -> None:
+        for key in ("mass_kg", "yaw_inertia_kg_m2", "lf_m", "lr_m", "steering_limit_rad",
+                    "lane_width_m", "car_width_m"):
+            _require_positive(getattr(self, key), key, where)
+        if self.car_width_m >= self.lane_width_m:
+            raise ConfigError(f"{where}: car_width_m ({self.car_width_m}) must be less than "
+                              f"lane_width_m ({self.lane_width_m})")
+
+
+@dataclasses.dataclass
+class RoadCondition:
+    """One road condition: cornering-stiffness interval per tire (N/rad) and friction mu."""
+
+    name: str = ""
+    stiffness_lo_n_per_rad: float = 0.0
+    stiffness_hi_n_per_rad: float = 0.0
+    friction_mu: float = 0.0
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return (self.stiffness_lo_n_per_rad, self.stiffness_hi_n_per_rad)
+
+
+@dataclasses.dataclass
+class Preset:
+    """A data set's label list (grippiest first) and frames per class."""
+
+    name: str = ""
+    labels: list[str] = dataclasses.field(default_factory=list)
+    frames_per_class: int = 0
+
+
+@dataclasses.dataclass
+class ConditionsTable:
+    """The paper's Table (cornering stiffness per condition) plus friction, and the presets."""
+
+    conditions: list[RoadCondition] = dataclasses.field(default_factory=list)
+    presets: list[Preset] = dataclasses.field(default_factory=list)
+
+    def condition(self, name: str) -> RoadCondition:
+        for c in self.conditions:
+            if c.name == name:
+                return c
+        raise ConfigError(f"unknown road condition {name!r}; known: "
+                          f"{', '.join(c.name for c in self.conditions)}")
+
+    def preset(self, name: str) -> Preset:
+        for p in self.presets:
+            if p.name == name:
+                return p
+        raise ConfigError(f"unknown preset {name!r}; known: "
+                          f"{', '.join(p.name for p in self.presets)}")
+
+    def preset_conditions(self, preset: str) -> list[RoadCondition]:
+        """The preset's conditions in its label order (grippiest first)."""
+        return [self.condition(n) for n in self.preset(preset).labels]
+
+    def safe_set(self, preset: str, label: str) -> list[str]:
+        """S(l): labels of the preset whose friction is <= mu(l) (paper Table, safety class set)."""
+        mu = self.condition(label).friction_mu
+        return [c.name for c in self.preset_conditions(preset) if c.friction_mu <= mu]
+
+    def contiguous_ranges(self, preset: str) -> list[list[str]]:
+        """Every run of consecutive labels in the preset's friction order (singles included)."""
+        labels = self.preset(preset).labels
+        return [labels[i:j] for i in range(len(labels)) for j in range(i + 1, len(labels) + 1)]
+
+    def hull(self, labels: typing.Iterable[str]) -> tuple[float, float]:
+        """Smallest stiffness interval containing every label's interval (N/rad)."""
+        conds = [self.condition(n) for n in labels]
+        if not conds:
+            raise ConfigError("hull of an empty label set")
+        return (min(c.stiffness_lo_n_per_rad for c in conds),
+                max(c.stiffness_hi_n_per_rad for c in conds))
+
+    def envelope(self, preset: str) -> tuple[float, float]:
+        """The preset's most conservative interval: the hull of all its labels (N/rad)."""
+        return self.hull(self.preset(preset).labels)
+
+    def least_friction(self, labels: typing.Iterable[str]) -> float:
+        """Smallest friction coefficient among the labels."""
+        return min(self.condition(n).friction_mu for n in labels)
+
+    def validate(self, where: str = "conditions") -> None:
+        names = [c.name for c in self.conditions]
+        if not names:
+            raise ConfigError(f"{where}: conditions: at least one road condition is required")
+        if len(set(names)) != len(names):
+            raise ConfigError(f"{where}: conditions: duplicate names in {names}")
+        for i, c in enumerate(self.conditions):
+            key = f"conditions[{i}] ({c.name})"
+            if not c.name:
+                raise ConfigError(f"{where}: conditions[{i}].name must not be empty")
+            _require_positive(c.stiffness_lo_n_per_rad, f"{key}.stiffness_lo_n_per_rad", where)
+            if c.stiffness_lo_n_per_rad >= c.stiffness_hi_n_per_rad:
+                raise ConfigError(
+                    f"{where}: {key}: stiffness_lo_n_per_rad ({c.stiffness_lo_n_per_rad}) must be "
+                    f"less than stiffness_hi_n_per_rad ({c.stiffness_hi_n_per_rad})")
+            if not 0.0 < c.friction_mu <= 2.0:
+                raise ConfigError(f"{where}: {key}.friction_mu = {c.friction_mu} is not in (0, 2]")
+        pnames = [p.name for p in self.presets]
+        if len(set(pnames)) != len(pnames):
+            raise ConfigError(f"{where}: presets: duplicate names in {pnames}")
+        for i, p in enumerate(self.presets):
+            key = f"presets[{i}] ({p.name})"
+            if not p.labels:
+                raise ConfigError(f"{where}: {key}.labels must not be empty")
+            if len(set(p.labels)) != len(p.labels):
+                raise ConfigError(f"{where}: {key}.labels has duplicates: {p.labels}")
+            for n in p.labels:
+                if n not in names:
+                    raise ConfigError(f"{where}: {key}.labels: unknown condition {n!r}")
+            mus = [self.condition(n).friction_mu for n in p.labels]
+            if any(a < b for a, b in zip(mus, mus[1:], strict=False)):
+                raise ConfigError(f"{where}: {key}.labels must be ordered grippiest first "
+                                  f"(friction non-increasing), got mu = {mus}")
+            if p.frames_per_class <= 0:
+                raise ConfigError(f"{where}: {key}.frames_per_class = {p.frames_per_class} "
+                                  "must be positive")
+
+
+@dataclasses.dataclass
+class ControllerSettings:
+    """L1 adaptive controller settings (DESIGN section 4)."""
+
+    adaptation_law: str = "piecewise_constant"  # "piecewise_constant" or "gradient"
+    adaptation_gain: float = 1.0e4  # Gamma of the gradient law (1/s)
+    q_ad_diag: list[float] = dataclasses.field(default_factory=lambda: [10.0, 1.0, 10.0, 1.0])
+    sample_period_s: float = 1.0e-4  # T_s of the piecewise-constant law
+    projection_epsilon: float = 0.1  # epsilon of the projection operator's convex function
+    bound_factor: float = 1.1  # parameter sets are this factor times the largest value
+
+    def validate(self, where: str = "settings") -> None:
+        if self.adaptation_law not in ("piecewise_constant", "gradient"):
+            raise ConfigError(f"{where}: controller.adaptation_law = {self.adaptation_law!r}; "
+                              "expected 'piecewise_constant' or 'gradient'")
+        _require_positive(self.adaptation_gain, "controller.adaptation_gain", where)
+        _require_positive(self.sample_period_s, "controller.sample_period_s", where)
+        _require_positive(self.projection_epsilon, "controller.projection_epsilon", where)
+        if self.bound_factor < 1.0:
+            raise ConfigError(f"{where}: controller.bound_factor = {self.bound_factor} must be >= 1")
+        if len(self.q_ad_diag) != 4 or min(self.q_ad_diag) <= 0:
+            raise ConfigError(f"{where}: controller.q_ad_diag = {self.q_ad_diag} must be four "
+                              "positive numbers")
+
+
+@dataclasses.dataclass
+class SynthesisSettings:
+    """Gain LMI and safe-speed search settings (DESIGN section 5)."""
+
+    decay_rate: float = 0.2  # alpha (1/s): A_cl + alpha I Hurwitz at every corner
+    lmi_margin: float = 1.0e-6  # eps of the strict LMI (normalised by X >= I)
+    speed_min_mps: float = 5.0
+    speed_max_mps: float = 30.0
+    filter_gain_max: float = 500.0  # k_bar
+    design_radius_m: float = 50.0  # road radius for the offset and grip conditions
+    slip_angle_max_rad: float = 0.03  # linear tire range
+    lateral_accel_fraction: float = 0.7  # a_y <= fraction * mu_lo * g
+    speed_grid_step_mps: float = 0.5
+    stiffness_grid_points: int = 5
+    w_grid_points: int = 5
+
+    def validate(self, where: str = "settings") -> None:
+        for key in ("decay_rate", "lmi_margin", "filter_gain_max", "design_radius_m",
+                    "slip_angle_max_rad", "lateral_accel_fraction", "speed_grid_step_mps"):
+            _require_positive(getattr(self, key), f"synthesis.{key}", where)
+        _require_positive(self.speed_min_mps, "synthesis.speed_min_mps", where)
+        if self.speed_min_mps > self.speed_max_mps:
+            raise ConfigError(f"{where}: synthesis.speed_min_mps ({self.speed_min_mps}) exceeds "
+                              f"synthesis.speed_max_mps ({self.speed_max_mps})")
+        for key in ("stiffness_grid_points", "w_grid_points"):
+            if getattr(self, key) < 2:
+                raise ConfigError(f"{where}: synthesis.{key} = {getattr(self, key)} must be >= 2")
+
+
+@dataclasses.dataclass
+class Settings:
+    """Controller and synthesis settings, one file."""
+
+    controller: ControllerSettings = dataclasses.field(default_factory=ControllerSettings)
+    synthesis: SynthesisSettings = dataclasses.field(default_factory=SynthesisSettings)
+
+    def validate(self, where: str = "settings") -> None:
+        self.controller.validate(where)
+        self.synthesis.validate(where)
+
+
+# --------------------------------------------------------------------------- loading
+
+def _require_positive(value: float, key: str, where: str) -> None:
+    if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
+        raise ConfigError(f"{where}: {key} = {value!r} must be a positive finite number")
+
+
+def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
+    """Unknown and missing keys, recursively, against the dataclass schema."""
+    if not dataclasses.is_dataclass(schema):
+        return
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: {path or 'top level'} must be a mapping, got {data!r}")
+    hints = typing.get_type_hints(schema)
+    fields = {f.name for f in dataclasses.fields(schema)}
+    unknown = sorted(set(data) - fields)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key {_join(path, unknown[0])!r}; expected one of "
+                          f"{', '.join(sorted(fields))}")
+    missing = [f for f in sorted(fields) if f not in data]
+    if missing:
+        raise ConfigError(f"{where}: missing key {_join(path, missing[0])!r}")
+    for name in fields:
+        hint = hints[name]
+        sub = data[name]
+        if dataclasses.is_dataclass(hint):
+            _check_keys(hint, sub, _join(path, name), where)
+        elif hint in (float, int) and (isinstance(sub, bool) or not isinstance(sub, (int, float))):
+            raise ConfigError(f"{where}: {_join(path, name)} = {sub!r} must be a number")
+        elif hint is str and not isinstance(sub, str):
+            raise ConfigError(f"{where}: {_join(path, name)} = {sub!r} must be a string")
+        elif typing.get_origin(hint) is list:
+            (item,) = typing.get_args(hint)
+            if dataclasses.is_dataclass(item):
+                if not isinstance(sub, list):
+                    raise ConfigError(f"{where}: {_join(path, name)} must be a list")
+                for i, entry in enumerate(sub):
+                    _check_keys(item, entry, f"{_join(path, name)}[{i}]", where)
+
+
+def _join(path: str, key: str) -> str:
+    return f"{path}.{key}" if path else key
+
+
+def load_typed(schema: type, filename: str | Path):
+    """Load ``filename`` into ``schema`` strictly; raise :class:`ConfigError` naming key and file."""
+    where = str(filename)
+    try:
+        text = Path(filename).read_text()
+    except OSError as e:
+        raise ConfigError(f"{where}: cannot read file ({e.strerror})") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+    _check_keys(schema, raw, "", where)
+    try:
+        obj = yaml_load_typed(schema=schema, data=text)
+    except (RuntimeError, ValueError, TypeError) as e:
+        raise ConfigError(f"{where}: {str(e).splitlines()[0]}") from None
+    obj.validate(where)
+    return obj
+
+
+def default_path(name: str) -> Path:
+    """Path of a default data file shipped in ``drake_cert/data``."""
+    return Path(str(resources.files("drake_cert.data") / name))
+
+
+def load_vehicle(filename: str | Path | None = None) -> VehicleParams:
+    return load_typed(VehicleParams, filename or default_path("vehicle.yaml"))
+
+
+def load_conditions(filename: str | Path | None = None) -> ConditionsTable:
+    return load_typed(ConditionsTable, filename or default_path("conditions.yaml"))
+
+
+def load_settings(filename: str | Path | None = None) -> Settings:
+    return load_typed(Settings, filename or default_path("settings.yaml"))

@@ -1,0 +1,65 @@
+"""Linear lateral error dynamics (Rajamani eq. 2.45; paper eq. (dynamic), section IV-A).
+
+State ``s = [e1, e1dot, e2, e2dot]`` (m, m/s, rad, rad/s): lateral offset from the lane
+centre (> 0 left) and heading error. ``sdot = A(C, V) s + b(C) u + g(C, V) psidot_des`` with
+front steering ``u`` (rad, > 0 left) and ``psidot_des = V * kappa`` (rad/s; kappa > 0 left
+turn). C_f = C_r = C is the cornering stiffness of ONE tire (N/rad); the model's factor 2
+counts the two tires of an axle. A is affine in (C, C/V); b is C times a constant vector.
+
+Every function accepts floats or numpy arrays of ``pydrake.symbolic.Expression`` for C and V,
+so the same equations build the C++-evaluated ``SymbolicVectorSystem`` plants.
+"""
+
+import numpy as np
+
+from drake_cert.config import VehicleParams
+
+
+def lateral_error_dynamics(vehicle: VehicleParams, stiffness_n_per_rad, speed_mps):
+    """Return ``(A, b, g)`` of eq. 2.45 for per-tire stiffness C and speed V.
+
+    Assumes V > 0 (the model has 1/V terms; designs use V >= 5 m/s). Shapes (4, 4), (4,), (4,).
+    """
+    m, iz = vehicle.mass_kg, vehicle.yaw_inertia_kg_m2
+    lf, lr = vehicle.lf_m, vehicle.lr_m
+    c, v = stiffness_n_per_rad, speed_mps
+    cf = cr = c
+    dtype = object if _is_symbolic(c) or _is_symbolic(v) else float
+    a = np.zeros((4, 4), dtype=dtype)
+    a[0, 1] = 1.0
+    a[1, 1] = -2.0 * (cf + cr) / (m * v)
+    a[1, 2] = 2.0 * (cf + cr) / m
+    a[1, 3] = 2.0 * (-cf * lf + cr * lr) / (m * v)
+    a[2, 3] = 1.0
+    a[3, 1] = -2.0 * (cf * lf - cr * lr) / (iz * v)
+    a[3, 2] = 2.0 * (cf * lf - cr * lr) / iz
+    a[3, 3] = -2.0 * (cf * lf**2 + cr * lr**2) / (iz * v)
+    b = np.array([0.0, 2.0 * cf / m, 0.0, 2.0 * cf * lf / iz], dtype=dtype)
+    g = np.array([0.0, -2.0 * (cf * lf - cr * lr) / (m * v) - v, 0.0,
+                  -2.0 * (cf * lf**2 + cr * lr**2) / (iz * v)], dtype=dtype)
+    return a, b, g
+
+
+def affine_parts(vehicle: VehicleParams):
+    """Constant matrices with ``A(C, V) = C * A1 + (C / V) * A2 + A0`` and ``b(C) = C * b1``.
+
+    Used by the corner LMIs: (C, C/V) enters affinely, so convex combinations of corners
+    cover the interval. Returns ``(A0, A1, A2, b1)``.
+    """
+    a_c1_v1, b1, _ = lateral_error_dynamics(vehicle, 1.0, 1.0)
+    a_c1_vbig, _, _ = lateral_error_dynamics(vehicle, 1.0, 1.0e12)
+    a0 = np.zeros((4, 4))
+    a0[0, 1] = a0[2, 3] = 1.0
+    a1 = a_c1_vbig - a0  # terms in C alone (the 1/V part vanishes as V -> inf)
+    a1[np.abs(a1) < 1e-9] = 0.0
+    a2 = a_c1_v1 - a0 - a1
+    return a0, a1, a2, b1
+
+
+def yaw_rate_command(speed_mps, curvature_per_m):
+    """Desired yaw rate ``psidot_des = V * kappa`` (rad/s)."""
+    return speed_mps * curvature_per_m
+
+
+def _is_symbolic(x) -> bool:
+    return not isinstance(x, (int, float, np.floating, np.integer))

@@ -1,0 +1,1 @@
+"""Convex gain synthesis, L1 norm, safe-speed search and independent verification."""
