@@ -1,0 +1,26 @@
+"""The CLI dispatcher: usage errors exit 2 with one line, help exits 0."""
+
+import subprocess
+import sys
+
+from drake_cert import cli
+
+
+def test_no_command_exits_2(capsys):
+    assert cli.main([]) == 2
+
+
+def test_unknown_command_exits_2_with_one_line():
+    out = subprocess.run([sys.executable, "-m", "drake_cert.cli", "fly"],
+                         capture_output=True, text=True)
+    assert out.returncode == 2
+    assert "invalid choice: 'fly'" in out.stderr
+    assert "Traceback" not in out.stderr
+
+
+def test_help_lists_every_command():
+    out = subprocess.run([sys.executable, "-m", "drake_cert.cli", "--help"],
+                         capture_output=True, text=True)
+    assert out.returncode == 0
+    for name in cli.COMMANDS:
+        assert name in out.stdout
