@@ -290,6 +290,20 @@ def load_typed(schema: type, filename: str | Path):
     return obj
 
 
+def load_typed_mapping(schema: type, data: typing.Any, where: str):
+    """Like :func:`load_typed` for an already-parsed YAML mapping (e.g. a block of a saved file).
+
+    ``where`` names the source in error messages; raises :class:`ConfigError`.
+    """
+    _check_keys(schema, data, "", where)
+    try:
+        obj = yaml_load_typed(schema=schema, data=yaml.safe_dump(data))
+    except (RuntimeError, ValueError, TypeError) as e:
+        raise ConfigError(f"{where}: {str(e).splitlines()[0]}") from None
+    obj.validate(where)
+    return obj
+
+
 def default_path(name: str) -> Path:
     """Path of a default data file shipped in ``drake_cert/data``."""
     return Path(str(resources.files("drake_cert.data") / name))

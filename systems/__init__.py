@@ -1,1 +1,1 @@
-"""Drake LeafSystems (plants, L1 adaptive controller, road) and the closed-loop diagram builder."""
+"""Drake systems: lateral plants, the L1 adaptive controller, the road, the closed-loop diagram."""

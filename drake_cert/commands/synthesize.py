@@ -1,0 +1,96 @@
+"""``drake-cert synthesize``: gains, filter gain and safe speed for every label range.
+
+Loads the vehicle, road conditions and settings (shipped defaults unless given), synthesizes
+one design per contiguous label range of each preset (``synthesis.table``) and prints a
+table (or ``--json`` on stdout). ``--out FILE`` writes the design table as YAML (atomically,
+with schema version and provenance) for ``drake-cert verify`` and the simulator. Exit 0 on
+success, also when some ranges have no safe speed (they say which condition failed); 2 on
+bad input.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--vehicle", metavar="FILE", default=None,
+                        help="vehicle YAML (default: the shipped Rajamani car)")
+    parser.add_argument("--conditions", metavar="FILE", default=None,
+                        help="road conditions and presets YAML (default: shipped)")
+    parser.add_argument("--settings", metavar="FILE", default=None,
+                        help="controller and synthesis settings YAML (default: shipped)")
+    parser.add_argument("--out", metavar="FILE", default=None,
+                        help="write the design table here (YAML); default: print only")
+    parser.add_argument("--json", action="store_true",
+                        help="print the designs as JSON on stdout (machine-readable)")
+
+
+def design_record(design) -> dict:
+    """JSON record of one design: every saved field plus ``stiffness_interval``."""
+    from synthesis.design_io import design_to_dict
+
+    record = design_to_dict(design)
+    record["margins"] = {k: (v if math.isfinite(v) else None)  # JSON has no infinities
+                         for k, v in record["margins"].items()}
+    record["stiffness_interval"] = [design.stiffness_lo_n_per_rad, design.stiffness_hi_n_per_rad]
+    return record
+
+
+def format_table(designs) -> str:
+    """Readable table: labels, interval, k_m, k, speed, failed condition or smallest margin."""
+    rows = [("labels", "interval (kN/rad)", "k_m", "k", "speed (m/s)", "failed / margins")]
+    for d in designs:
+        if d.failed_condition:
+            note = f"FAILED: {d.failed_condition}"
+        else:
+            note = ", ".join(f"{k}={v:.3g}" for k, v in d.margins.items()
+                             if k != "gain_decay_per_s")
+        rows.append((
+            "+".join(d.labels) or "(interval)",
+            f"{d.stiffness_lo_n_per_rad / 1e3:g}-{d.stiffness_hi_n_per_rad / 1e3:g}",
+            "[" + " ".join(f"{x:.3g}" for x in d.k_m) + "]",
+            f"{d.filter_gain:g}",
+            f"{d.speed_mps:.2f}",
+            note,
+        ))
+    widths = [max(len(r[i]) for r in rows) for i in range(5)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r[:5], widths, strict=True)) + "  "
+                     + r[5] for r in rows)
+
+
+def run(args: argparse.Namespace) -> int:
+    from tqdm import tqdm
+
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from drake_cert.errors import ConfigError
+    from drake_cert.io import provenance
+    from synthesis.design_io import DesignTable, save_design_table
+    from synthesis.table import synthesize_table
+
+    vehicle = load_vehicle(args.vehicle)
+    conditions = load_conditions(args.conditions)
+    settings = load_settings(args.settings)
+
+    def progress(ranges):
+        return tqdm(ranges, desc="synthesize", unit="range", file=sys.stderr, leave=False)
+
+    designs = synthesize_table(vehicle, conditions, settings, progress)
+    prov = provenance(seed=None)  # deterministic: no seed
+    table = DesignTable(designs, vehicle, settings, prov, conditions)
+    if args.out:
+        try:
+            save_design_table(args.out, table)
+        except OSError as e:
+            raise ConfigError(f"cannot write --out {args.out}: {e.strerror}") from None
+        print(f"wrote {len(designs)} designs to {args.out}", file=sys.stderr)
+    if args.json:
+        json.dump({"schema_version": prov["schema_version"], "provenance": prov,
+                   "designs": [design_record(d) for d in designs]}, sys.stdout, indent=1)
+        print()
+    else:
+        print(format_table(designs))
+    return 0

@@ -1,0 +1,214 @@
+"""``drake-cert train``: train a classifier (noise-augmented at sigma) or fit its regressor head.
+
+One model per file (``drake_cert/data/models/<preset>/<task>_sigma<S>.pt`` by default), so an
+interrupted ``--all`` resumes with the next missing model; a classifier also writes a
+checkpoint after every epoch (``<file>.ckpt``) and an interrupted run resumes from it. After
+each model the folder's ``MANIFEST.yaml`` records every file's command line, SHA-256 and
+metrics.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from pathlib import Path
+
+import yaml
+
+from drake_cert.errors import ConfigError, ModelNotFoundError
+
+ALL_PRESETS = ("carla-like", "rtk-like", "robotcar-like")
+ALL_SIGMAS = (0.0, 0.25, 0.5, 1.0)
+FRAME_PASSES = 30_000  # default epochs: enough to see ~30k frames, at least MIN_EPOCHS
+MIN_EPOCHS = 6
+
+
+def configure(parser) -> None:
+    parser.add_argument("--preset", help="preset name (conditions table), e.g. carla-like")
+    parser.add_argument("--task", choices=("classify", "regress"), default=None,
+                        help="classify: noise-augmented classifier; regress: linear stiffness "
+                             "head on that classifier's frozen features (needs the classifier); "
+                             "default classify, both with --all")
+    parser.add_argument("--sigma", default=None,
+                        help="Gaussian noise std in [0, 1] pixel space (0 = non-robust model)")
+    parser.add_argument("--all", action="store_true",
+                        help=f"train every preset in {', '.join(ALL_PRESETS)} x sigma in "
+                             f"{', '.join(f'{s:g}' for s in ALL_SIGMAS)} x task, "
+                             "skipping models that exist")
+    parser.add_argument("--epochs", type=int, default=None,
+                        help=f"classifier epochs (default: max({MIN_EPOCHS}, "
+                             f"ceil({FRAME_PASSES} / training frames)))")
+    parser.add_argument("--seed", type=int, default=0, help="data and training seed")
+    parser.add_argument("--frames-per-class", type=int, default=None,
+                        help="training frames per class (default: the preset's count)")
+    parser.add_argument("--models", default=None,
+                        help="model folder (default: the shipped drake_cert/data/models)")
+    parser.add_argument("--conditions", default=None, help="conditions YAML (default: shipped)")
+    parser.add_argument("--threads", type=int, default=1,
+                        help="torch CPU threads (1 is fastest on a busy machine)")
+    parser.add_argument("--force", action="store_true", help="retrain models that exist")
+    parser.add_argument("--json", action="store_true", help="print the metrics as JSON on stdout")
+
+
+def default_epochs(train_frames: int) -> int:
+    """Epochs so that a model sees about FRAME_PASSES frames, at least MIN_EPOCHS."""
+    return max(MIN_EPOCHS, math.ceil(FRAME_PASSES / max(1, train_frames)))
+
+
+def run(args) -> int:
+    import torch
+
+    from drake_cert.config import load_conditions
+    from drake_cert.models import check_sigma
+
+    torch.set_num_threads(max(1, int(args.threads)))
+    table = load_conditions(args.conditions)
+    if args.seed < 0:
+        raise ConfigError(f"--seed {args.seed} must be >= 0")
+    if args.epochs is not None and args.epochs <= 0:
+        raise ConfigError(f"--epochs {args.epochs} must be positive")
+    if args.frames_per_class is not None and args.frames_per_class <= 0:
+        raise ConfigError(f"--frames-per-class {args.frames_per_class} must be positive")
+    if args.all:
+        presets = [args.preset] if args.preset else list(ALL_PRESETS)
+        sigmas = [check_sigma(args.sigma)] if args.sigma is not None else list(ALL_SIGMAS)
+        tasks = [args.task] if args.task is not None else ["classify", "regress"]
+        jobs = [(p, t, s) for p in presets for s in sigmas for t in tasks]
+    else:
+        if args.preset is None or args.sigma is None:
+            raise ConfigError("give --preset and --sigma (or --all)")
+        jobs = [(args.preset, args.task or "classify", check_sigma(args.sigma))]
+    for preset, _, _ in jobs:
+        table.preset(preset)  # unknown preset: ConfigError before any work
+    results = []
+    for preset, task, sigma in jobs:
+        result = train_one(table, preset, task, sigma, args)
+        if result is not None:
+            results.append(result)
+    if args.json:
+        json.dump(results, sys.stdout, indent=2)
+        print()
+    return 0
+
+
+def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
+    """The equivalent single-model command line (recorded in the model's provenance)."""
+    from drake_cert.models import sigma_tag
+
+    cmd = ["drake-cert", "train", "--preset", preset, "--task", task, "--sigma", sigma_tag(sigma)]
+    if args.epochs is not None and task == "classify":
+        cmd += ["--epochs", str(args.epochs)]
+    if args.seed != 0:
+        cmd += ["--seed", str(args.seed)]
+    if args.frames_per_class is not None:
+        cmd += ["--frames-per-class", str(args.frames_per_class)]
+    if args.models is not None:
+        cmd += ["--models", str(args.models)]
+    if args.conditions is not None:
+        cmd += ["--conditions", str(args.conditions)]
+    return cmd
+
+
+def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
+    """Train (classify) or fit (regress) one model unless its file exists; returns its metrics."""
+    from drake_cert.datasets import load_split
+    from drake_cert.io import provenance
+    from drake_cert.models import (
+        file_sha256,
+        load_model,
+        model_path,
+        save_model,
+        sigma_tag,
+        train_command,
+    )
+    from drake_cert.training import (
+        evaluate_accuracy,
+        evaluate_mse,
+        fit_regressor,
+        train_classifier,
+    )
+
+    path = model_path(preset, task, sigma, args.models)
+    name = f"{preset} {task} sigma={sigma_tag(sigma)}"
+    if path.exists() and not args.force:
+        print(f"drake-cert train: {name}: {path} exists; skipping (--force retrains)",
+              file=sys.stderr)
+        return None
+    if task == "regress":
+        cpath = model_path(preset, "classify", sigma, args.models)
+        if not cpath.exists():
+            raise ModelNotFoundError(
+                f"the {task} model for {preset} at sigma {sigma_tag(sigma)} needs its classifier "
+                f"{cpath}; make it first with: "
+                f"{train_command(preset, 'classify', sigma, args.models)}")
+    t0 = time.perf_counter()
+    train = load_split(preset, "train", seed=args.seed, frames_per_class=args.frames_per_class,
+                       conditions=table)
+    test = load_split(preset, "test", seed=args.seed, conditions=table)
+    data_seconds = time.perf_counter() - t0
+    command = _single_command(preset, task, sigma, args)
+    meta = {"provenance": provenance(args.seed, command),
+            "invoked_as": " ".join(["drake-cert", *sys.argv[1:]]),
+            "preset": preset, "task": task, "sigma": sigma,
+            "label_names": list(train.label_names), "image_size": train.size,
+            "train_frames_per_class": len(train) // len(train.label_names)}
+    t0 = time.perf_counter()
+    if task == "classify":
+        epochs = args.epochs or default_epochs(len(train))
+        ckpt = path.with_name(path.name + ".ckpt")
+        model, train_metrics = train_classifier(train, sigma=sigma, epochs=epochs, seed=args.seed,
+                                                checkpoint=ckpt, progress=True, description=name)
+        test_metrics = {"test_accuracy_clean": evaluate_accuracy(model, test),
+                        "test_accuracy_noisy": evaluate_accuracy(model, test, sigma=sigma,
+                                                                 seed=args.seed),
+                        "test_frames": len(test)}
+    else:
+        classifier = load_model(preset, "classify", sigma, args.models)
+        model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
+        test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
+                        "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
+                                                                    seed=args.seed),
+                        "test_frames": len(test)}
+        meta["classifier_file"] = cpath.name
+        meta["classifier_sha256"] = file_sha256(cpath)
+        ckpt = None
+    seconds = time.perf_counter() - t0
+    meta["train_metrics"] = train_metrics
+    meta["test_metrics"] = test_metrics
+    meta["seconds"] = {"data": round(data_seconds, 2), "fit": round(seconds, 2)}
+    save_model(model, path, meta=meta)
+    if ckpt is not None and ckpt.exists():
+        ckpt.unlink()
+    update_manifest(path.parent.parent, path, meta)
+    shown = ", ".join(f"{k} {v:.4g}" for k, v in test_metrics.items() if k != "test_frames")
+    print(f"drake-cert train: {name}: {shown} ({seconds:.0f} s) -> {path}", file=sys.stderr)
+    return {"file": str(path), "preset": preset, "task": task, "sigma": sigma,
+            "seconds": round(seconds, 2), **test_metrics}
+
+
+def update_manifest(root: Path, path: Path, meta: dict) -> None:
+    """Record one model in ``<root>/MANIFEST.yaml``: command line, SHA-256, metrics."""
+    from drake_cert.io import atomic_write_text
+    from drake_cert.models import file_sha256
+
+    manifest_path = root / "MANIFEST.yaml"
+    manifest = {}
+    if manifest_path.exists():
+        manifest = yaml.safe_load(manifest_path.read_text()) or {}
+    models = manifest.get("models", {})
+    metrics = {k: (round(v, 6) if isinstance(v, float) else v)
+               for k, v in meta["test_metrics"].items()}
+    models[str(path.relative_to(root))] = {
+        "command": meta["provenance"]["command"],
+        "git_revision": meta["provenance"]["git_revision"],
+        "created_utc": meta["provenance"]["created_utc"],
+        "sha256": file_sha256(path),
+        "fit_seconds": meta["seconds"]["fit"],
+        "test_metrics": metrics,
+    }
+    manifest = {"description": "Shipped perception models; each was made by its command "
+                               "(provenance is also inside each file).",
+                "models": dict(sorted(models.items()))}
+    atomic_write_text(manifest_path, yaml.safe_dump(manifest, sort_keys=False))

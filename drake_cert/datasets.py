@@ -1,0 +1,195 @@
+"""Frame sets: the synthetic train/calibration/test splits and a loader for users' image folders.
+
+A :class:`FrameSet` is what every perception stage consumes: images in [0, 1] pixel space
+(the space in which the smoothing noise is added and L2 budgets are measured), the label of
+each frame (an index into ``label_names``, grippiest first as in the preset) and the frame's
+true cornering stiffness per tire (N/rad).
+
+Splits (DESIGN section 3). ``train`` has the preset's ``frames_per_class`` frames per class
+(carla-like 4000, rtk-like 400, robotcar-like 2000); ``calibration`` and ``test`` each have
+20 % of that (at least 10 per class). The three splits are rendered from independent random
+streams derived from ``(seed, split, label)`` (numpy ``SeedSequence``), so they are disjoint
+and each is reproducible on its own. Generated splits are kept in a small in-memory cache.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from drake_cert.config import ConditionsTable, load_conditions
+from drake_cert.errors import ConfigError
+
+SPLITS = ("train", "calibration", "test")
+HELD_OUT_FRACTION = 0.2  # calibration and test size, as a fraction of train, per class
+MIN_HELD_OUT_PER_CLASS = 10
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+
+
+@dataclasses.dataclass
+class FrameSet:
+    """Camera frames with their road condition and true cornering stiffness.
+
+    images: float32 [N, 3, H, W] in [0, 1]; labels: int64 [N], index into ``label_names``;
+    stiffness_n_per_rad: float32 [N], true cornering stiffness per tire (N/rad; NaN when
+    unknown, e.g. users' frames); label_names: the preset's labels, grippiest first;
+    preset: the preset's name (or "" for frames whose labels match no preset).
+    """
+
+    images: torch.Tensor
+    labels: torch.Tensor
+    stiffness_n_per_rad: torch.Tensor
+    label_names: list[str]
+    preset: str
+
+    def __post_init__(self) -> None:
+        n = self.images.shape[0]
+        if self.images.ndim != 4 or self.images.shape[1] != 3:
+            raise ValueError(f"images must be [N, 3, H, W], got {tuple(self.images.shape)}")
+        if self.labels.shape != (n,) or self.stiffness_n_per_rad.shape != (n,):
+            raise ValueError("labels and stiffness_n_per_rad must have one entry per image")
+
+    def __len__(self) -> int:
+        return int(self.images.shape[0])
+
+    @property
+    def size(self) -> int:
+        """Image side length in pixels."""
+        return int(self.images.shape[-1])
+
+    def subset(self, index) -> FrameSet:
+        """The frames at ``index`` (a slice, an index tensor or a boolean mask)."""
+        return FrameSet(self.images[index], self.labels[index], self.stiffness_n_per_rad[index],
+                        list(self.label_names), self.preset)
+
+    def per_class(self, count: int) -> FrameSet:
+        """The first ``count`` frames of every class (in order of appearance)."""
+        keep = torch.zeros(len(self), dtype=torch.bool)
+        for k in range(len(self.label_names)):
+            idx = torch.nonzero(self.labels == k).flatten()[:count]
+            keep[idx] = True
+        return self.subset(keep)
+
+
+def split_frames_per_class(frames_per_class: int, split: str) -> int:
+    """Frames per class of a split: train = the preset's count, calibration/test = 20 % of it."""
+    if split == "train":
+        return frames_per_class
+    return max(MIN_HELD_OUT_PER_CLASS, int(round(HELD_OUT_FRACTION * frames_per_class)))
+
+
+def split_seed(seed: int, split: str) -> int:
+    """A 63-bit seed for one split, independent of the others (numpy SeedSequence)."""
+    if split not in SPLITS:
+        raise ConfigError(f"unknown split {split!r}; expected one of {', '.join(SPLITS)}")
+    if not isinstance(seed, (int, np.integer)) or seed < 0:
+        raise ConfigError(f"seed = {seed!r} must be a non-negative integer")
+    ss = np.random.SeedSequence([int(seed), 0x5EED, SPLITS.index(split)])
+    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_ENTRIES = 4
+
+
+def load_split(preset: str, split: str, *, seed: int = 0, size: int = 64,
+               frames_per_class: int | None = None,
+               conditions: ConditionsTable | None = None) -> FrameSet:
+    """The ``split`` ("train", "calibration" or "test") of a preset's synthetic frames.
+
+    ``frames_per_class`` overrides the split's count per class (default: the preset's
+    count for train, 20 % of it for calibration and test). Same arguments, same bytes.
+    """
+    from drake_cert.frames import generate_frames
+
+    table = conditions if conditions is not None else load_conditions()
+    p = table.preset(preset)
+    count = frames_per_class if frames_per_class is not None else split_frames_per_class(
+        p.frames_per_class, split)
+    sseed = split_seed(seed, split)
+    key = (preset, split, int(seed), int(size), int(count),
+           tuple((c.name, c.stiffness_lo_n_per_rad, c.stiffness_hi_n_per_rad)
+                 for c in table.preset_conditions(preset)))
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    frames = generate_frames(table, preset, seed=sseed, frames_per_class=count, size=size)
+    _CACHE[key] = frames
+    while len(_CACHE) > _CACHE_ENTRIES:
+        _CACHE.popitem(last=False)
+    return frames
+
+
+def clear_cache() -> None:
+    """Forget every cached split (frees memory)."""
+    _CACHE.clear()
+
+
+def load_image_folder(path: str | Path, *, preset: str | None = None, size: int = 64,
+                      conditions: ConditionsTable | None = None) -> FrameSet:
+    """Read a class-per-folder directory of PNG/JPEG frames (users' Carla/RTK/RobotCar data).
+
+    ``path/<label>/*.png|jpg|jpeg``; each folder name is a road-condition label. With
+    ``preset`` the folders must be labels of that preset and the label order is the preset's;
+    without it the folders must exactly be some preset's labels (that preset is used), or
+    else names from the conditions table (ordered grippiest first, preset ""). Images are
+    converted to RGB and resized to ``size`` x ``size`` (bilinear). Stiffness is unknown
+    (NaN). Raises :class:`ConfigError` for a missing folder, unknown labels or no images.
+    """
+    from PIL import Image
+
+    root = Path(path)
+    if not root.is_dir():
+        raise ConfigError(f"image folder {str(root)!r} does not exist or is not a directory")
+    table = conditions if conditions is not None else load_conditions()
+    folders = sorted(d for d in root.iterdir() if d.is_dir() and not d.name.startswith("."))
+    found = [d.name for d in folders]
+    if not found:
+        raise ConfigError(f"image folder {str(root)!r} has no class sub-folders")
+    label_names, preset_name = _label_order(table, found, preset, root)
+    images, labels = [], []
+    for d in folders:
+        files = sorted(f for f in d.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
+        for f in files:
+            try:
+                with Image.open(f) as im:
+                    im = im.convert("RGB").resize((size, size), Image.Resampling.BILINEAR)
+                    arr = np.asarray(im, dtype=np.uint8)
+            except OSError as e:
+                raise ConfigError(f"cannot read image {str(f)!r}: {e}") from None
+            images.append(arr)
+            labels.append(label_names.index(d.name))
+    if not images:
+        raise ConfigError(f"image folder {str(root)!r} holds no PNG/JPEG images "
+                          f"in its sub-folders {found}")
+    x = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).float().div_(255.0).contiguous()
+    y = torch.tensor(labels, dtype=torch.int64)
+    c = torch.full((len(labels),), math.nan, dtype=torch.float32)
+    return FrameSet(x, y, c, label_names, preset_name)
+
+
+def _label_order(table: ConditionsTable, found: list[str], preset: str | None,
+                 root: Path) -> tuple[list[str], str]:
+    """Label order (grippiest first) and preset name for folder names ``found``."""
+    if preset is not None:
+        labels = table.preset(preset).labels
+        unknown = [n for n in found if n not in labels]
+        if unknown:
+            raise ConfigError(f"{root}: folder {unknown[0]!r} is not a label of preset "
+                              f"{preset!r} ({', '.join(labels)})")
+        return list(labels), preset
+    for p in table.presets:
+        if sorted(p.labels) == sorted(found):
+            return list(p.labels), p.name
+    known = {c.name for c in table.conditions}
+    unknown = [n for n in found if n not in known]
+    if unknown:
+        raise ConfigError(f"{root}: folder {unknown[0]!r} is not a road condition of the "
+                          f"conditions table ({', '.join(sorted(known))})")
+    order = sorted(found, key=lambda n: -table.condition(n).friction_mu)
+    return order, ""

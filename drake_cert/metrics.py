@@ -1,0 +1,35 @@
+"""Closed-loop metrics (DESIGN section 7): pure functions of a logged tape.
+
+A tape is :class:`systems.closed_loop.Tape` (times, states s = [e1, e1dot, e2, e2dot],
+steering, lane margin). Nothing here simulates.
+"""
+
+import numpy as np
+
+
+def peak_lateral_offset(tape) -> float:
+    """Largest |e1| over the episode (m)."""
+    return float(np.max(np.abs(tape.states[:, 0])))
+
+
+def left_lane(tape) -> bool:
+    """True when |e1| exceeded the lane margin (lane - car width)/2 at some sample."""
+    return peak_lateral_offset(tape) > tape.lane_margin_m
+
+
+def final_offset(tape) -> float:
+    """e1 at the last sample (m), signed (> 0 left of the lane centre)."""
+    return float(tape.states[-1, 0])
+
+
+def peak_steering(tape) -> float:
+    """Largest applied |steering| over the episode (rad)."""
+    return float(np.max(np.abs(tape.steering_rad)))
+
+
+def instability_rate(tapes) -> float:
+    """Share of episodes (%) that left the lane."""
+    tapes = list(tapes)
+    if not tapes:
+        return 0.0
+    return 100.0 * sum(left_lane(t) for t in tapes) / len(tapes)

@@ -1,0 +1,235 @@
+"""Perception models (DESIGN section 3): a small ResNet classifier and the stiffness regressor.
+
+The classifier f maps a frame in [0, 1] pixel space to logits over a preset's labels; trained
+with Gaussian noise at sigma (Cohen et al. 2019) it is the base model of randomized smoothing,
+and sigma = 0 is the paper's non-robust f. The regressor (paper: ResNet features + linear
+SVR) is the classifier's frozen convolutional features plus a linear head that outputs the
+cornering stiffness per tire in N/rad.
+
+Files: one model per file, ``<root>/<preset>/<task>_sigma<S>.pt`` with root
+``drake_cert/data/models`` by default. A classifier file holds its weights; a regressor file
+holds its head and the SHA-256 of the classifier file whose features it uses (both are
+loaded together). Every file carries provenance (command line, git revision, seed, schema
+version) and the label names, sigma and training metrics.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import io as _io
+import math
+from importlib import resources
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from drake_cert.errors import ConfigError, ModelNotFoundError
+from drake_cert.io import SCHEMA_VERSION, atomic_write_bytes
+
+TASKS = ("classify", "regress")
+MODEL_FORMAT = "drake-cert-model"
+
+
+class BasicBlock(nn.Module):
+    """Two 3x3 convolutions with batch norm and an identity (or 1x1 projection) shortcut."""
+
+    def __init__(self, cin: int, cout: int, stride: int = 1):
+        super().__init__()
+        self.conv1 = nn.Conv2d(cin, cout, 3, stride=stride, padding=1, bias=False)
+        self.bn1 = nn.BatchNorm2d(cout)
+        self.conv2 = nn.Conv2d(cout, cout, 3, padding=1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.shortcut = nn.Identity()
+        if stride != 1 or cin != cout:
+            self.shortcut = nn.Sequential(nn.Conv2d(cin, cout, 1, stride=stride, bias=False),
+                                          nn.BatchNorm2d(cout))
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        out = torch.relu(self.bn1(self.conv1(x)))
+        out = self.bn2(self.conv2(out))
+        return torch.relu(out + self.shortcut(x))
+
+
+class ConvFeatures(nn.Module):
+    """Stride-2 stem, three residual stages (w, 2w, 4w channels), global average pooling.
+
+    Input: frames [B, 3, H, W] in [0, 1]; output: features [B, 4w].
+    """
+
+    def __init__(self, width: int = 16):
+        super().__init__()
+        self.width = width
+        self.stem = nn.Sequential(nn.Conv2d(3, width, 3, stride=2, padding=1, bias=False),
+                                  nn.BatchNorm2d(width), nn.ReLU())
+        self.stages = nn.Sequential(BasicBlock(width, width),
+                                    BasicBlock(width, 2 * width, stride=2),
+                                    BasicBlock(2 * width, 4 * width, stride=2))
+        self.out_dim = 4 * width
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        x = (x - 0.5) * 4.0  # centre [0, 1] pixels; the scale is part of the model
+        return self.stages(self.stem(x)).mean(dim=(2, 3))
+
+
+class SmallResNet(nn.Module):
+    """ResNet-style classifier: ``features(x) -> [B, F]`` and ``forward(x) -> logits [B, K]``."""
+
+    def __init__(self, num_classes: int, width: int = 16):
+        super().__init__()
+        self.num_classes = num_classes
+        self.width = width
+        self.backbone = ConvFeatures(width)
+        self.fc = nn.Linear(self.backbone.out_dim, num_classes)
+
+    def features(self, x: torch.Tensor) -> torch.Tensor:
+        return self.backbone(x)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.fc(self.backbone(x))
+
+
+class StiffnessRegressor(nn.Module):
+    """Frozen convolutional features + linear head: frames [B, 3, H, W] -> stiffness (N/rad) [B]."""
+
+    def __init__(self, features: nn.Module, head: nn.Linear):
+        super().__init__()
+        self.features = features
+        self.head = head
+        for p in self.features.parameters():
+            p.requires_grad_(False)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x)).squeeze(-1)
+
+
+# --------------------------------------------------------------------------- files
+
+def default_root() -> Path:
+    """Folder of the shipped weights: ``drake_cert/data/models``."""
+    return Path(str(resources.files("drake_cert.data"))) / "models"
+
+
+def sigma_tag(sigma: float) -> str:
+    """Canonical text of a noise level in file names and commands ('0', '0.25', '1')."""
+    return f"{check_sigma(sigma):g}"
+
+
+def check_sigma(sigma) -> float:
+    """sigma as a float, or :class:`ConfigError` unless it is finite and >= 0."""
+    try:
+        value = float(sigma)
+    except (TypeError, ValueError):
+        raise ConfigError(f"sigma = {sigma!r} is not a number") from None
+    if not math.isfinite(value) or value < 0:
+        raise ConfigError(f"sigma = {sigma!r} must be a finite number >= 0")
+    return value
+
+
+def check_task(task: str) -> str:
+    if task not in TASKS:
+        raise ConfigError(f"unknown task {task!r}; expected one of {', '.join(TASKS)}")
+    return task
+
+
+def model_path(preset: str, task: str, sigma: float, root: str | Path | None = None) -> Path:
+    """``<root>/<preset>/<task>_sigma<S>.pt`` (root: the shipped ``drake_cert/data/models``)."""
+    check_task(task)
+    base = Path(root) if root is not None else default_root()
+    return base / preset / f"{task}_sigma{sigma_tag(sigma)}.pt"
+
+
+def train_command(preset: str, task: str, sigma: float, root: str | Path | None = None) -> str:
+    """The command line that makes a model file."""
+    cmd = f"drake-cert train --preset {preset} --task {task} --sigma {sigma_tag(sigma)}"
+    if root is not None:
+        cmd += f" --models {root}"
+    return cmd
+
+
+def file_sha256(path: str | Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def save_model(model: nn.Module, path: str | Path, *, meta: dict) -> Path:
+    """Write a classifier or regressor atomically with ``meta`` (provenance, labels, metrics).
+
+    A regressor's meta must name its classifier file (``classifier_file``, relative to the
+    regressor's folder) and its SHA-256 (``classifier_sha256``); only the head is stored.
+    """
+    if isinstance(model, SmallResNet):
+        payload = {"kind": "classifier", "num_classes": model.num_classes,
+                   "width": model.width,
+                   "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()}}
+    elif isinstance(model, StiffnessRegressor):
+        for key in ("classifier_file", "classifier_sha256"):
+            if key not in meta:
+                raise ValueError(f"a regressor's meta needs {key!r}")
+        payload = {"kind": "regressor",
+                   "head": {k: v.detach().clone() for k, v in model.head.state_dict().items()}}
+    else:
+        raise TypeError(f"cannot save a {type(model).__name__}")
+    payload.update({"format": MODEL_FORMAT, "schema_version": SCHEMA_VERSION, "meta": dict(meta)})
+    buf = _io.BytesIO()
+    torch.save(payload, buf)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def read_model_file(path: str | Path) -> dict:
+    """The raw payload of a model file (weights-only unpickling)."""
+    path = Path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=True)
+    except FileNotFoundError:
+        raise ModelNotFoundError(f"model file {str(path)!r} does not exist") from None
+    except Exception as e:  # torch raises several types for corrupt files
+        raise ConfigError(f"model file {str(path)!r} cannot be read ({type(e).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
+        raise ConfigError(f"{str(path)!r} is not a drake-cert model file")
+    if payload.get("schema_version") != SCHEMA_VERSION:
+        raise ConfigError(f"{str(path)!r} has schema version {payload.get('schema_version')}, "
+                          f"expected {SCHEMA_VERSION}")
+    return payload
+
+
+def load_model_file(path: str | Path) -> nn.Module:
+    """Load a model file (classifier, or regressor with its classifier) in eval mode.
+
+    The model's ``meta`` dict is attached as ``model.meta``.
+    """
+    path = Path(path)
+    payload = read_model_file(path)
+    if payload["kind"] == "classifier":
+        model = SmallResNet(payload["num_classes"], width=payload["width"])
+        model.load_state_dict(payload["state_dict"])
+    elif payload["kind"] == "regressor":
+        meta = payload["meta"]
+        cpath = path.parent / meta["classifier_file"]
+        if not cpath.exists():
+            raise ModelNotFoundError(f"regressor {str(path)!r} needs classifier {str(cpath)!r}, "
+                                     "which does not exist")
+        if file_sha256(cpath) != meta["classifier_sha256"]:
+            raise ConfigError(f"regressor {str(path)!r} was fitted on another version of "
+                              f"{str(cpath)!r}; refit it (drake-cert train --task regress ...)")
+        classifier = load_model_file(cpath)
+        weight = payload["head"]["weight"]
+        head = nn.Linear(weight.shape[1], 1, dtype=weight.dtype)
+        head.load_state_dict(payload["head"])
+        model = StiffnessRegressor(classifier.backbone, head)
+    else:
+        raise ConfigError(f"{str(path)!r}: unknown model kind {payload['kind']!r}")
+    model.meta = payload["meta"]
+    return model.eval()
+
+
+def load_model(preset: str, task: str, sigma: float, root: str | Path | None = None) -> nn.Module:
+    """The trained model for (preset, task, sigma), in eval mode, with ``.meta``.
+
+    Raises :class:`ModelNotFoundError` naming the ``drake-cert train`` command that makes it.
+    """
+    path = model_path(preset, task, sigma, root)
+    if not path.exists():
+        raise ModelNotFoundError(f"no trained {task} model for preset {preset!r} at sigma "
+                                 f"{sigma_tag(sigma)} ({path}); make it with: "
+                                 f"{train_command(preset, task, sigma, root)}")
+    return load_model_file(path)

@@ -1,0 +1,290 @@
+"""Certify a perception model on test frames, optionally under attack (the `certify` command).
+
+One function per task. Each takes the model, the frames and :class:`CertifySettings`, and
+returns per-frame records and a summary of plain numbers (metrics are defined in
+:func:`summarize_classification` / :func:`summarize_regression`). Frames are taken
+round-robin over the classes from a seeded permutation, so any count is balanced.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterable
+
+import numpy as np
+import torch
+
+from drake_cert.attacks import AttackSettings, attack
+from drake_cert.config import ConditionsTable
+from drake_cert.errors import CertificationError
+from drake_cert.smoothing import (
+    MedianSmoothedRegressor,
+    SmoothedClassifier,
+    calibrate_conformal,
+    check_enough_samples,
+    percentile_bound_indices,
+    runtime_classification_interval,
+    runtime_interval,
+)
+
+COMPILE_AUTO_SAMPLES = 300_000  # "auto" compiles when a run draws at least this many samples
+
+
+@dataclasses.dataclass(frozen=True)
+class CertifySettings:
+    """What to certify and how; budgets are L2 in [0, 1] pixel space."""
+
+    preset: str
+    sigma: float  # smoothing noise; 0 = the base model f, no certificate
+    task: str = "classify"  # "classify" or "regress"
+    attack: str = "none"  # "none", "sa" (stability) or "ea" (efficiency)
+    eps: float = 0.5  # attack budget and certificate budget of the run-time interval
+    n0: int = 100  # selection samples
+    n: int = 10_000  # estimation samples
+    alpha: float = 0.001  # certificate failure probability
+    frames: int = 50  # test frames
+    batch_size: int = 1000
+    seed: int = 0
+    device: str = "cpu"
+    compile: str = "auto"  # "auto", "on" or "off"
+    attack_steps: int = 20
+    attack_noise_draws: int = 8  # SmoothAdv noise draws per PGD step (sigma > 0)
+    calibration_per_class: int = 100  # regression: calibration frames per label (Mondrian)
+    calibration_n: int = 1000  # regression: samples per calibration frame
+    alpha_c: float = 0.01  # regression: conformal miscoverage
+    alpha_m: float = 0.001  # regression: level of the calibration median interval
+
+    def validate(self) -> None:
+        if self.task not in ("classify", "regress"):
+            raise CertificationError(f"task {self.task!r} is not 'classify' or 'regress'")
+        if self.attack not in ("none", "sa", "ea"):
+            raise CertificationError(f"attack {self.attack!r} is not one of none, sa, ea")
+        if not (math.isfinite(self.sigma) and self.sigma >= 0):
+            raise CertificationError(f"sigma = {self.sigma!r} must be a finite number >= 0")
+        if not (math.isfinite(self.eps) and self.eps >= 0):
+            raise CertificationError(f"eps = {self.eps!r} must be a finite number >= 0")
+        for key in ("n0", "n", "frames", "batch_size", "attack_steps", "attack_noise_draws",
+                    "calibration_per_class", "calibration_n"):
+            if getattr(self, key) <= 0:
+                raise CertificationError(f"{key.replace('_', '-')} = {getattr(self, key)} "
+                                         "must be a positive integer")
+        for key in ("alpha", "alpha_c", "alpha_m"):
+            if not 0 < getattr(self, key) < 1:
+                raise CertificationError(f"{key} = {getattr(self, key)!r} must be in (0, 1)")
+        if self.compile not in ("auto", "on", "off"):
+            raise CertificationError(f"compile = {self.compile!r} is not auto, on or off")
+        if self.seed < 0:
+            raise CertificationError(f"seed = {self.seed} must be >= 0")
+
+    def compile_model(self, samples: int) -> bool:
+        """Compile when asked, or ("auto") when the run draws enough samples to pay it back."""
+        return self.compile == "on" or (self.compile == "auto" and samples >= COMPILE_AUTO_SAMPLES)
+
+    def attack_settings(self) -> AttackSettings:
+        return AttackSettings(eps=self.eps, steps=self.attack_steps,
+                              noise_draws=self.attack_noise_draws, seed=self.seed)
+
+
+def select_frames(labels: torch.Tensor, count: int, seed: int) -> np.ndarray:
+    """Indices of ``count`` frames, round-robin over classes from a seeded permutation."""
+    labels = labels.numpy()
+    if count > len(labels):
+        raise CertificationError(f"{count} frames asked for but the split has {len(labels)}")
+    rng = np.random.default_rng(seed)
+    order = rng.permutation(len(labels))
+    queues = [list(order[labels[order] == k]) for k in np.unique(labels)]
+    chosen: list[int] = []
+    while len(chosen) < count:
+        for q in queues:
+            if q and len(chosen) < count:
+                chosen.append(int(q.pop(0)))
+    return np.array(chosen)
+
+
+def _attacked(model, images: torch.Tensor, settings: CertifySettings,
+              chunk: int = 16) -> torch.Tensor:
+    if settings.attack == "none" or settings.eps == 0:
+        return images
+    out = []
+    for i in range(0, len(images), chunk):
+        part = dataclasses.replace(settings.attack_settings(), seed=settings.seed + i)
+        out.append(attack(model, images[i:i + chunk], settings.attack, part,
+                          task=settings.task, sigma=settings.sigma))
+    return torch.cat(out)
+
+
+def _progress(progress: Callable[[Iterable], Iterable] | None, it: Iterable) -> Iterable:
+    return progress(it) if progress is not None else it
+
+
+def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
+                       stiffness: torch.Tensor, label_names: list[str], table: ConditionsTable,
+                       settings: CertifySettings,
+                       progress: Callable[[Iterable], Iterable] | None = None
+                       ) -> tuple[list[dict], dict]:
+    """Certify (sigma > 0) or evaluate (sigma = 0) a classifier on frames, clean and attacked.
+
+    For sigma > 0, each frame gets the certificate of :meth:`SmoothedClassifier.certify` with
+    the safe set S(a) of the predicted label, at the clean frame and (when attacked) at the
+    attacked frame, and the run-time interval at budget eps at the observed frame.
+    """
+    settings.validate()
+    k = len(label_names)
+    if settings.sigma > 0:
+        check_enough_samples(settings.n, settings.alpha, k)
+    adversarial = _attacked(model, images, settings)
+    attacked = adversarial is not images
+    records = []
+    if settings.sigma == 0:
+        with torch.inference_mode():
+            clean_pred = model(images).argmax(1)
+            adv_pred = model(adversarial).argmax(1) if attacked else clean_pred
+        for i in range(len(images)):
+            records.append({"label": int(labels[i]), "clean_prediction": int(clean_pred[i]),
+                            "prediction": int(adv_pred[i]),
+                            "stiffness_n_per_rad": float(stiffness[i])})
+        return records, summarize_classification(records, settings)
+    safe = {i: [label_names.index(n) for n in table.safe_set(settings.preset, name)]
+            for i, name in enumerate(label_names)}
+    per_frame = (settings.n0 + settings.n) * (2 if attacked else 1)
+    smooth = SmoothedClassifier(model, k, settings.sigma, device=settings.device,
+                                compile=settings.compile_model(per_frame * len(images)))
+    for i in _progress(progress, range(len(images))):
+        seed = settings.seed * 1_000_003 + i
+        clean = smooth.certify(images[i], settings.n0, settings.n, settings.alpha,
+                               settings.batch_size, safe_set=safe, seed=seed)
+        seen = smooth.certify(adversarial[i], settings.n0, settings.n, settings.alpha,
+                              settings.batch_size, safe_set=safe,
+                              seed=seed + 500_000) if attacked else clean
+        rt = runtime_classification_interval(seen, table, settings.preset, settings.eps,
+                                             label_names)
+        y = float(stiffness[i])
+        records.append({
+            "label": int(labels[i]), "stiffness_n_per_rad": y,
+            "clean_prediction": clean.label, "clean_radius": clean.radius,
+            "clean_radius_label": clean.radius_for([clean.top_label]) if not clean.abstained
+            else 0.0,
+            "prediction": seen.label, "radius": seen.radius,
+            "interval_labels": list(rt.labels), "interval_n_per_rad": list(rt.interval),
+            "interval_certified": rt.certified, "interval_radius": rt.radius,
+            "covered": rt.stiffness_lo_n_per_rad <= y <= rt.stiffness_hi_n_per_rad,
+        })
+    summary = summarize_classification(records, settings)
+    summary["compile_seconds"] = smooth.compile_seconds
+    return records, summary
+
+
+def summarize_classification(records: list[dict], settings: CertifySettings) -> dict:
+    """Metrics over frames (all shares in [0, 1], radii in L2 pixel units, widths in N/rad).
+
+    accuracy: prediction at the observed (attacked, if any) frame equals the true label
+    (abstain counts as wrong); clean_accuracy: the same at the clean frame; abstain_rate,
+    clean_abstain_rate: share of abstentions at the observed / clean frame; mean_radius:
+    mean R_{S(a)} at the clean frame (abstain = 0); mean_radius_label: the same for the
+    single label {a};
+    interval_width_mean, interval_coverage: run-time interval at budget eps at the observed
+    frame, its mean width and the share holding the true stiffness; coverage_given_clean_right:
+    that share among frames whose clean smoothed prediction is right; envelope_rate: share of
+    run-time intervals that fell back to the envelope.
+    """
+    y = np.array([r["label"] for r in records])
+    pred = np.array([r["prediction"] for r in records])
+    clean = np.array([r["clean_prediction"] for r in records])
+    out = {"frames": len(records), "preset": settings.preset, "task": settings.task,
+           "sigma": settings.sigma, "attack": settings.attack, "eps": settings.eps,
+           "n0": settings.n0, "n": settings.n, "alpha": settings.alpha,
+           "accuracy": float(np.mean(pred == y)), "clean_accuracy": float(np.mean(clean == y))}
+    if settings.sigma == 0:
+        return out
+    right = clean == y
+    covered = np.array([r["covered"] for r in records])
+    out.update({
+        "abstain_rate": float(np.mean(pred == -1)),
+        "clean_abstain_rate": float(np.mean(clean == -1)),
+        "mean_radius": float(np.mean([r["clean_radius"] for r in records])),
+        "mean_radius_label": float(np.mean([r["clean_radius_label"] for r in records])),
+        "interval_width_mean": float(np.mean([r["interval_n_per_rad"][1] -
+                                              r["interval_n_per_rad"][0] for r in records])),
+        "interval_coverage": float(np.mean(covered)),
+        "coverage_given_clean_right": float(np.mean(covered[right])) if right.any() else None,
+        "envelope_rate": float(np.mean([not r["interval_certified"] for r in records])),
+    })
+    return out
+
+
+def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
+                      stiffness: torch.Tensor, calibration: tuple | None,
+                      envelope: tuple[float, float], settings: CertifySettings,
+                      progress: Callable[[Iterable], Iterable] | None = None
+                      ) -> tuple[list[dict], dict]:
+    """Median-smoothing certificates (sigma > 0) or plain predictions (sigma = 0) of a regressor.
+
+    ``calibration`` is ``(images, stiffness, labels)`` of calibration frames (sigma > 0): the
+    conformal beta is computed on them first (:func:`calibrate_conformal`). Each test frame
+    gets ``certify_interval`` at budget eps at the observed frame and the run-time interval.
+    """
+    settings.validate()
+    if settings.sigma > 0:
+        percentile_bound_indices(settings.n, settings.eps, settings.sigma, settings.alpha)
+    adversarial = _attacked(model, images, settings)
+    records = []
+    if settings.sigma == 0:
+        with torch.inference_mode():
+            clean = model(images).reshape(-1)
+            seen = model(adversarial).reshape(-1)
+        for i in range(len(images)):
+            records.append({"label": int(labels[i]), "stiffness_n_per_rad": float(stiffness[i]),
+                            "clean_prediction_n_per_rad": float(clean[i]),
+                            "prediction_n_per_rad": float(seen[i])})
+        return records, summarize_regression(records, settings, None)
+    if calibration is None:
+        raise CertificationError("median smoothing needs calibration frames for beta")
+    cal_images, cal_stiffness, cal_labels = calibration
+    samples = settings.calibration_n * len(cal_images) + settings.n * len(images)
+    smooth = MedianSmoothedRegressor(model, settings.sigma, device=settings.device,
+                                     compile=settings.compile_model(samples))
+    cal = calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
+                              n=settings.calibration_n, batch_size=settings.batch_size,
+                              alpha_m=settings.alpha_m, alpha_c=settings.alpha_c,
+                              seed=settings.seed + 77, progress=progress)
+    for i in _progress(progress, range(len(images))):
+        median, lower, upper = smooth.certify_interval(
+            adversarial[i], settings.eps, settings.n, settings.alpha, settings.batch_size,
+            seed=settings.seed * 1_000_003 + i)
+        lo, hi = runtime_interval(lower, upper, cal.beta, envelope)
+        y = float(stiffness[i])
+        records.append({"label": int(labels[i]), "stiffness_n_per_rad": y,
+                        "prediction_n_per_rad": median, "lower_n_per_rad": lower,
+                        "upper_n_per_rad": upper, "interval_n_per_rad": [lo, hi],
+                        "covered": lo <= y <= hi})
+    summary = summarize_regression(records, settings, cal.beta)
+    summary.update({"betas_n_per_rad": {str(k): v for k, v in cal.betas.items()},
+                    "calibration_frames": cal.frames, "compile_seconds": smooth.compile_seconds})
+    return records, summary
+
+
+def summarize_regression(records: list[dict], settings: CertifySettings,
+                         beta: float | None) -> dict:
+    """Metrics over frames (N/rad). mae: mean |prediction - true stiffness| at the observed
+    frame (the smoothed median for sigma > 0); interval_width_mean, interval_coverage: the
+    run-time interval at budget eps; raw_width_mean: the width of [lower, upper] before beta.
+    """
+    y = np.array([r["stiffness_n_per_rad"] for r in records])
+    pred = np.array([r["prediction_n_per_rad"] for r in records])
+    out = {"frames": len(records), "preset": settings.preset, "task": settings.task,
+           "sigma": settings.sigma, "attack": settings.attack, "eps": settings.eps,
+           "n": settings.n, "alpha": settings.alpha, "mae_n_per_rad": float(np.mean(abs(pred - y)))}
+    if settings.sigma == 0:
+        clean = np.array([r["clean_prediction_n_per_rad"] for r in records])
+        out["clean_mae_n_per_rad"] = float(np.mean(abs(clean - y)))
+        return out
+    out.update({
+        "beta_n_per_rad": beta,
+        "raw_width_mean": float(np.mean([r["upper_n_per_rad"] - r["lower_n_per_rad"]
+                                         for r in records])),
+        "interval_width_mean": float(np.mean([r["interval_n_per_rad"][1] -
+                                              r["interval_n_per_rad"][0] for r in records])),
+        "interval_coverage": float(np.mean([r["covered"] for r in records])),
+    })
+    return out

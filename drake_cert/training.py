@@ -1,0 +1,234 @@
+"""Training: Gaussian-noise augmented classifier (Cohen et al. 2019) and the ridge regressor head.
+
+Classifier: SGD with Nesterov momentum, a learning rate that is a pure function of the step
+(linear warm-up, cosine decay), random horizontal flips, and at sigma > 0 every training
+frame is replaced by ``x + N(0, sigma^2 I)`` in [0, 1] pixel space (no clipping, as the
+smoothing noise). The data order, flips and noise of epoch e come from a generator seeded by
+``(seed, e)``, so a run resumed from its per-epoch checkpoint gives the same weights as an
+uninterrupted run.
+
+Regressor (paper: ResNet features + linear SVR): the classifier's frozen features of
+noise-augmented frames at the same sigma, and a ridge least-squares fit to the frames' true
+stiffness (N/rad).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io as _io
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from torch import nn
+from tqdm import tqdm
+
+from drake_cert.datasets import FrameSet
+from drake_cert.io import atomic_write_bytes
+from drake_cert.models import SmallResNet, StiffnessRegressor
+
+STIFFNESS_UNIT = 1.0e5  # N/rad; regression targets are fitted in this unit
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Classifier training hyper-parameters (all recorded in the model's provenance)."""
+
+    epochs: int = 6
+    width: int = 16  # channels of the first stage (then 2w, 4w)
+    batch_size: int = 64
+    learning_rate: float = 0.05  # peak
+    warmup_fraction: float = 0.1
+    weight_decay: float = 5.0e-4
+    momentum: float = 0.9
+    flip: bool = True
+
+
+def learning_rate_at(step: int, total_steps: int, config: TrainConfig) -> float:
+    """Linear warm-up to the peak, then cosine decay to 0 (a pure function of the step)."""
+    warm = max(1, int(config.warmup_fraction * total_steps))
+    if step < warm:
+        return config.learning_rate * (step + 1) / warm
+    t = (step - warm) / max(1, total_steps - warm)
+    return 0.5 * config.learning_rate * (1 + math.cos(math.pi * min(1.0, t)))
+
+
+def epoch_generator(seed: int, epoch: int) -> torch.Generator:
+    """The random stream of one epoch (order, flips, noise)."""
+    ss = np.random.SeedSequence([int(seed), 0xE90C, int(epoch)])
+    return torch.Generator().manual_seed(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
+
+
+def add_gaussian_noise(x: torch.Tensor, sigma: float, generator: torch.Generator | None
+                       ) -> torch.Tensor:
+    """x + N(0, sigma^2 I) in [0, 1] pixel space (Cohen et al.); no clipping."""
+    if sigma == 0:
+        return x
+    return x + sigma * torch.randn(x.shape, generator=generator)
+
+
+def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
+                     seed: int = 0, config: TrainConfig | None = None,
+                     checkpoint: str | Path | None = None, progress: bool = False,
+                     description: str = "train",
+                     on_epoch_end=None) -> tuple[SmallResNet, dict]:
+    """Train a :class:`SmallResNet` on ``train_set`` with Gaussian noise at ``sigma``.
+
+    ``checkpoint``: a file written atomically after every epoch; if it exists (same
+    configuration and data size) training resumes after its last epoch. ``on_epoch_end(epoch)``
+    is called after each epoch's checkpoint (epoch counted from 1). Returns the model
+    (eval mode) and metrics: final-epoch training loss and accuracy (on noisy frames),
+    epochs, steps, seconds.
+    """
+    import time
+
+    cfg = config or TrainConfig()
+    if epochs is not None:
+        cfg = dataclasses.replace(cfg, epochs=int(epochs))
+    torch.manual_seed(seed)
+    model = SmallResNet(len(train_set.label_names), width=cfg.width)
+    decay, no_decay = [], []
+    for p in model.parameters():
+        (no_decay if p.ndim == 1 else decay).append(p)
+    optimizer = torch.optim.SGD([{"params": decay, "weight_decay": cfg.weight_decay},
+                                 {"params": no_decay, "weight_decay": 0.0}],
+                                lr=cfg.learning_rate, momentum=cfg.momentum, nesterov=True)
+    n = len(train_set)
+    steps_per_epoch = math.ceil(n / cfg.batch_size)
+    total = steps_per_epoch * cfg.epochs
+    signature = {"config": dataclasses.asdict(cfg), "sigma": float(sigma), "seed": int(seed),
+                 "frames": n, "labels": list(train_set.label_names)}
+    start_epoch, seconds = 0, 0.0
+    history: list[dict] = []
+    if checkpoint is not None and Path(checkpoint).exists():
+        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+        if state.get("signature") == signature:
+            model.load_state_dict(state["model"])
+            optimizer.load_state_dict(state["optimizer"])
+            start_epoch, seconds = int(state["epoch"]), float(state["seconds"])
+            history = list(state["history"])
+            if progress:
+                print(f"{description}: resuming after epoch {start_epoch}/{cfg.epochs}",
+                      file=sys.stderr)
+        elif progress:
+            print(f"{description}: checkpoint {checkpoint} is for another run; starting over",
+                  file=sys.stderr)
+    loss_fn = nn.CrossEntropyLoss()
+    for epoch in range(start_epoch, cfg.epochs):
+        t0 = time.perf_counter()
+        model.train()
+        gen = epoch_generator(seed, epoch)
+        order = torch.randperm(n, generator=gen)
+        flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
+        total_loss, correct = 0.0, 0
+        bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
+                   file=sys.stderr, disable=not progress, leave=False)
+        for b in bar:
+            idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
+            x = train_set.images[idx]
+            flip = flips[idx]
+            x = torch.where(flip[:, None, None, None], x.flip(-1), x)
+            x = add_gaussian_noise(x, sigma, gen)
+            y = train_set.labels[idx]
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
+            logits = model(x)
+            loss = loss_fn(logits, y)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            total_loss += float(loss.detach()) * len(idx)
+            correct += int((logits.argmax(1) == y).sum())
+            bar.set_postfix(loss=f"{float(loss.detach()):.3f}")
+        bar.close()
+        seconds += time.perf_counter() - t0
+        history.append({"epoch": epoch + 1, "loss": total_loss / n, "accuracy": correct / n})
+        if progress:
+            print(f"{description}: epoch {epoch + 1}/{cfg.epochs} loss {total_loss / n:.4f} "
+                  f"train accuracy {correct / n:.4f}", file=sys.stderr)
+        if checkpoint is not None:
+            buf = _io.BytesIO()
+            torch.save({"signature": signature, "epoch": epoch + 1, "seconds": seconds,
+                        "history": history, "model": model.state_dict(),
+                        "optimizer": optimizer.state_dict()}, buf)
+            atomic_write_bytes(checkpoint, buf.getvalue())
+        if on_epoch_end is not None:
+            on_epoch_end(epoch + 1)
+    model.eval()
+    last = history[-1] if history else {"loss": math.nan, "accuracy": math.nan}
+    metrics = {"train_loss": last["loss"], "train_accuracy": last["accuracy"],
+               "epochs": cfg.epochs, "steps": total, "train_seconds": round(seconds, 2),
+               "train_frames": n, "config": dataclasses.asdict(cfg)}
+    return model, metrics
+
+
+@torch.no_grad()
+def batched_features(features: nn.Module, images: torch.Tensor, *, sigma: float = 0.0,
+                     generator: torch.Generator | None = None,
+                     batch_size: int = 500) -> torch.Tensor:
+    """features(x + N(0, sigma^2 I)) over ``images`` in batches -> [N, F]."""
+    was_training = features.training
+    features.eval()
+    out = [features(add_gaussian_noise(images[i:i + batch_size], sigma, generator))
+           for i in range(0, len(images), batch_size)]
+    features.train(was_training)
+    return torch.cat(out)
+
+
+def fit_regressor(classifier: SmallResNet, train_set: FrameSet, *, sigma: float, seed: int = 0,
+                  ridge: float = 1.0e-3, copies: int = 1) -> tuple[StiffnessRegressor, dict]:
+    """Ridge fit of a linear head on the classifier's frozen features to the true stiffness.
+
+    Features are computed on ``copies`` noisy copies of each training frame at ``sigma``.
+    The ridge penalty ``ridge * N`` applies to standardised features. Returns the regressor
+    (eval mode; output N/rad) and metrics: training MSE in (N/rad)^2.
+    """
+    if torch.isnan(train_set.stiffness_n_per_rad).any():
+        raise ValueError("fit_regressor needs the true stiffness of every training frame")
+    gen = epoch_generator(seed, 10_000)
+    feats = torch.cat([batched_features(classifier.backbone, train_set.images, sigma=sigma,
+                                        generator=gen) for _ in range(copies)]).double()
+    target = (train_set.stiffness_n_per_rad.double() / STIFFNESS_UNIT).repeat(copies)
+    mu, sd = feats.mean(0), feats.std(0).clamp_min(1e-8)
+    z = (feats - mu) / sd
+    y_mean = target.mean()
+    n, d = z.shape
+    w = torch.linalg.solve(z.T @ z + ridge * n * torch.eye(d, dtype=z.dtype),
+                           z.T @ (target - y_mean))
+    weight = (w / sd) * STIFFNESS_UNIT
+    bias = (y_mean - (mu / sd * w).sum()) * STIFFNESS_UNIT
+    head = nn.Linear(d, 1)
+    with torch.no_grad():
+        head.weight.copy_(weight.float()[None])
+        head.bias.copy_(bias.float().reshape(1))
+    regressor = StiffnessRegressor(classifier.backbone, head).eval()
+    residual = (z @ w + y_mean - target) * STIFFNESS_UNIT
+    metrics = {"train_mse_n_per_rad_sq": float((residual**2).mean()), "ridge": ridge,
+               "copies": copies, "train_frames": len(train_set)}
+    return regressor, metrics
+
+
+@torch.no_grad()
+def predict_logits(model: nn.Module, images: torch.Tensor, *, sigma: float = 0.0,
+                   seed: int = 0, batch_size: int = 500) -> torch.Tensor:
+    """Model outputs on ``images`` (+ Gaussian noise at sigma, seeded) in eval mode."""
+    model.eval()
+    gen = epoch_generator(seed, 20_000)
+    return torch.cat([model(add_gaussian_noise(images[i:i + batch_size], sigma, gen))
+                      for i in range(0, len(images), batch_size)])
+
+
+def evaluate_accuracy(model: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
+                      seed: int = 0) -> float:
+    """Share of frames whose top logit is the true label (under noise at sigma if > 0)."""
+    logits = predict_logits(model, frames.images, sigma=sigma, seed=seed)
+    return float((logits.argmax(1) == frames.labels).float().mean())
+
+
+def evaluate_mse(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
+                 seed: int = 0) -> float:
+    """Mean squared error of predicted vs true stiffness, in (N/rad)^2."""
+    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double()
+    return float(((pred - frames.stiffness_n_per_rad.double()) ** 2).mean())

@@ -1,0 +1,202 @@
+"""Saving and loading designs as YAML (DESIGN 5.4): schema version, provenance, one idea.
+
+A design table file (``drake-cert synthesize --out``)::
+
+    schema_version: 1
+    provenance: {schema_version, command, git_revision, seed, created_utc}
+    vehicle: {...}        # VehicleParams used
+    settings: {...}       # Settings used (controller and synthesis)
+    conditions: {...}     # ConditionsTable used (optional)
+    designs: [ {labels, stiffness_lo_n_per_rad, ..., k_m: [4 numbers], ..., margins: {...}} ]
+
+A single-design file has ``design: {...}`` instead of ``designs``. Loading checks every key
+and value and raises :class:`DesignFormatError` naming the file and the offending key.
+Files are written atomically.
+"""
+
+import dataclasses
+import math
+from pathlib import Path
+
+import yaml
+
+from drake_cert.config import (
+    ConditionsTable,
+    Settings,
+    VehicleParams,
+    load_typed_mapping,
+)
+from drake_cert.errors import ConfigError, DesignFormatError
+from drake_cert.io import atomic_write_text
+from synthesis.design import ControllerDesign
+
+DESIGN_SCHEMA_VERSION = 1
+TOP_KEYS_REQUIRED = ("schema_version", "provenance", "vehicle", "settings")
+TOP_KEYS_OPTIONAL = ("conditions", "designs", "design")
+
+
+@dataclasses.dataclass
+class DesignTable:
+    """Designs with the vehicle, settings (and conditions) they were synthesized for."""
+
+    designs: list[ControllerDesign]
+    vehicle: VehicleParams
+    settings: Settings
+    provenance: dict
+    conditions: ConditionsTable | None = None
+
+
+def design_to_dict(design: ControllerDesign) -> dict:
+    """Plain YAML-able mapping of one design (floats, lists; ``k_m`` under ``k_m``)."""
+    return {
+        "labels": list(design.labels),
+        "stiffness_lo_n_per_rad": float(design.stiffness_lo_n_per_rad),
+        "stiffness_hi_n_per_rad": float(design.stiffness_hi_n_per_rad),
+        "nominal_stiffness_n_per_rad": float(design.nominal_stiffness_n_per_rad),
+        "friction_mu_lo": float(design.friction_mu_lo),
+        "k_m": [float(x) for x in design.k_m],
+        "gain_speed_max_mps": float(design.gain_speed_max_mps),
+        "filter_gain": float(design.filter_gain),
+        "speed_mps": float(design.speed_mps),
+        "failed_condition": str(design.failed_condition),
+        "margins": {str(k): float(v) for k, v in design.margins.items()},
+    }
+
+
+def dump_design_table(table: DesignTable, single: bool = False) -> str:
+    """YAML text of the table (``single``: a one-design file with top-level ``design``)."""
+    data = {
+        "schema_version": DESIGN_SCHEMA_VERSION,
+        "provenance": dict(table.provenance),
+        "vehicle": dataclasses.asdict(table.vehicle),
+        "settings": dataclasses.asdict(table.settings),
+    }
+    if table.conditions is not None:
+        data["conditions"] = dataclasses.asdict(table.conditions)
+    if single:
+        if len(table.designs) != 1:
+            raise ValueError("a single-design file needs exactly one design")
+        data["design"] = design_to_dict(table.designs[0])
+    else:
+        data["designs"] = [design_to_dict(d) for d in table.designs]
+    return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
+
+
+def save_design_table(path: str | Path, table: DesignTable, single: bool = False) -> Path:
+    """Write the table (or its single design) to ``path`` atomically."""
+    return atomic_write_text(path, dump_design_table(table, single))
+
+
+def load_design_file(path: str | Path) -> DesignTable:
+    """Read a design table or single-design file; :class:`DesignFormatError` if unreadable."""
+    where = str(path)
+    try:
+        text = Path(path).read_text()
+    except (OSError, UnicodeDecodeError) as e:
+        reason = e.strerror if isinstance(e, OSError) else "not UTF-8 text"
+        raise DesignFormatError(f"{where}: cannot read file ({reason})") from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise DesignFormatError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+    return parse_design_table(raw, where)
+
+
+def parse_design_table(raw, where: str) -> DesignTable:
+    """Validate an already-parsed design file (see module docstring)."""
+    if not isinstance(raw, dict):
+        raise DesignFormatError(f"{where}: top level must be a mapping, got {type(raw).__name__}")
+    unknown = sorted(set(raw) - set(TOP_KEYS_REQUIRED) - set(TOP_KEYS_OPTIONAL))
+    if unknown:
+        raise DesignFormatError(f"{where}: unknown top-level key {unknown[0]!r}")
+    for key in TOP_KEYS_REQUIRED:
+        if key not in raw:
+            raise DesignFormatError(f"{where}: missing top-level key {key!r}")
+    if raw["schema_version"] != DESIGN_SCHEMA_VERSION:
+        raise DesignFormatError(f"{where}: schema_version = {raw['schema_version']!r}; this "
+                                f"version reads {DESIGN_SCHEMA_VERSION}")
+    if not isinstance(raw["provenance"], dict):
+        raise DesignFormatError(f"{where}: provenance must be a mapping")
+    if ("designs" in raw) == ("design" in raw):
+        raise DesignFormatError(f"{where}: expected exactly one of 'designs' (a table) or "
+                                "'design' (one design)")
+    try:
+        vehicle = load_typed_mapping(VehicleParams, raw["vehicle"], f"{where}: vehicle")
+        settings = load_typed_mapping(Settings, raw["settings"], f"{where}: settings")
+        conditions = (load_typed_mapping(ConditionsTable, raw["conditions"],
+                                         f"{where}: conditions")
+                      if "conditions" in raw else None)
+    except ConfigError as e:
+        raise DesignFormatError(str(e)) from None
+    if "design" in raw:
+        entries, key = [raw["design"]], "design"
+    else:
+        entries, key = raw["designs"], "designs"
+        if not isinstance(entries, list) or not entries:
+            raise DesignFormatError(f"{where}: designs must be a non-empty list")
+    designs = [design_from_dict(e, f"{where}: {key}" + ("" if key == "design" else f"[{i}]"))
+               for i, e in enumerate(entries)]
+    return DesignTable(designs, vehicle, settings, dict(raw["provenance"]), conditions)
+
+
+_FLOAT_FIELDS = ("stiffness_lo_n_per_rad", "stiffness_hi_n_per_rad",
+                 "nominal_stiffness_n_per_rad", "friction_mu_lo", "gain_speed_max_mps",
+                 "filter_gain", "speed_mps")
+
+
+def design_from_dict(data, where: str) -> ControllerDesign:
+    """One design mapping -> :class:`ControllerDesign`; raises :class:`DesignFormatError`."""
+    if not isinstance(data, dict):
+        raise DesignFormatError(f"{where} must be a mapping")
+    fields = [f.name for f in dataclasses.fields(ControllerDesign)]
+    unknown = sorted(set(data) - set(fields))
+    if unknown:
+        raise DesignFormatError(f"{where}: unknown key {unknown[0]!r}")
+    missing = [f for f in fields if f not in data]
+    if missing:
+        raise DesignFormatError(f"{where}: missing key {missing[0]!r}")
+    for key in _FLOAT_FIELDS:
+        _require_number(data[key], f"{where}.{key}")
+    labels = data["labels"]
+    if not isinstance(labels, list) or not all(isinstance(x, str) for x in labels):
+        raise DesignFormatError(f"{where}.labels must be a list of label names")
+    k_m = data["k_m"]
+    if not isinstance(k_m, list) or len(k_m) != 4:
+        raise DesignFormatError(f"{where}.k_m must be a list of 4 numbers, got {k_m!r}")
+    for i, x in enumerate(k_m):
+        _require_number(x, f"{where}.k_m[{i}]")
+    if not isinstance(data["failed_condition"], str):
+        raise DesignFormatError(f"{where}.failed_condition must be a string")
+    margins = data["margins"]
+    if not isinstance(margins, dict):
+        raise DesignFormatError(f"{where}.margins must be a mapping")
+    for k, v in margins.items():
+        _require_number(v, f"{where}.margins.{k}", allow_inf=True)
+    lo, hi = data["stiffness_lo_n_per_rad"], data["stiffness_hi_n_per_rad"]
+    if not 0.0 < lo < hi:
+        raise DesignFormatError(f"{where}: stiffness interval [{lo}, {hi}] N/rad must satisfy "
+                                "0 < lo < hi")
+    for key in ("speed_mps", "filter_gain", "gain_speed_max_mps", "friction_mu_lo"):
+        if data[key] < 0.0:
+            raise DesignFormatError(f"{where}.{key} = {data[key]} must not be negative")
+    return ControllerDesign(
+        labels=list(labels),
+        stiffness_lo_n_per_rad=float(lo),
+        stiffness_hi_n_per_rad=float(hi),
+        nominal_stiffness_n_per_rad=float(data["nominal_stiffness_n_per_rad"]),
+        friction_mu_lo=float(data["friction_mu_lo"]),
+        k_m=[float(x) for x in k_m],
+        gain_speed_max_mps=float(data["gain_speed_max_mps"]),
+        filter_gain=float(data["filter_gain"]),
+        speed_mps=float(data["speed_mps"]),
+        failed_condition=data["failed_condition"],
+        margins={str(k): float(v) for k, v in margins.items()},
+    )
+
+
+def _require_number(value, key: str, allow_inf: bool = False) -> None:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if ok and not allow_inf:
+        ok = math.isfinite(value)
+    if not ok or (isinstance(value, float) and math.isnan(value)):
+        raise DesignFormatError(f"{key} = {value!r} must be a finite number")

@@ -1,0 +1,203 @@
+"""Safe-speed and filter-gain search (DESIGN 5.3; paper eq. (prog)).
+
+The design speed is the largest V in ``[V_min, V_hi]`` (V_hi: where ``k_m`` is certified) at
+which all four conditions of :mod:`synthesis.conditions` hold for some filter gain
+``k <= k_bar``; condition b must hold for every speed in ``[V_min, V]``.
+
+Search: the conditions are evaluated at ``k = k_bar`` on the speed grid (step
+``speed_grid_step_mps``; V_hi added as the last point). Condition a is not monotone in V
+(1/V terms), so the grid is scanned rather than bisected. The largest grid speed where a, c, d
+hold and the grid eigenvalues of b hold on ``[V_min, V]`` is certified for b by corner LMIs
+(:func:`certify_reference_stability`); if that fails the next lower grid speed is tried. The
+cell above it is refined by bisection only when every condition that fails at the cell's top
+is monotone in V (grip: ``V^2 / R``; b: a growing speed range), and every bisection point is
+re-checked against all four conditions. Finally k is lowered to the smallest multiple of
+``k_bar / 10`` that still meets a and b at the chosen speed (more time-delay margin).
+None qualifies: speed 0 and the first failing condition at the grid speed where the most
+conditions held.
+"""
+
+import dataclasses
+import functools
+
+import numpy as np
+
+from drake_cert.config import Settings, VehicleParams
+from synthesis import conditions as cond
+from synthesis.gains import closed_loop_spectral_abscissa
+
+L1_MARGIN_MIN = 1.0e-3  # require ||G|| L <= 1 - 1e-3 (numerical slack for verification)
+OFFSET_MARGIN_MIN_M = 1.0e-3
+EIG_MARGIN_MIN_PER_S = 1.0e-6
+REFINE_BISECTIONS = 5  # the grid cell is refined to step / 32
+FILTER_GAIN_FRACTIONS = np.arange(1, 11) / 10.0
+MIN_LMI_SEGMENT_MPS = 0.25
+GAIN_CHECK_POINTS = (21, 26)
+
+
+@dataclasses.dataclass(frozen=True)
+class SpeedSearchResult:
+    """Design speed (m/s, 0: stop), filter gain k, failed condition ('' if none), margins."""
+
+    speed_mps: float
+    filter_gain: float
+    failed_condition: str
+    margins: dict
+
+
+@dataclasses.dataclass
+class IntervalEvaluator:
+    """Evaluates the interval-only conditions (a, b, c) at given speeds, with caches.
+
+    One evaluator per (interval, k_m): designs that share an interval (labels with equal
+    stiffness ranges but different friction) reuse its evaluations.
+    """
+
+    vehicle: VehicleParams
+    settings: Settings
+    interval: tuple[float, float]
+    k_m: np.ndarray
+    gain_speed_max_mps: float
+
+    def __post_init__(self):
+        self._cache: dict = {}
+
+    def _memo(self, key, fn):
+        if key not in self._cache:
+            self._cache[key] = fn()
+        return self._cache[key]
+
+    def l1_margin(self, speed, k) -> float:
+        syn = self.settings.synthesis
+        return self._memo(("a", speed, k), lambda: cond.l1_condition_margin(
+            self.vehicle, self.k_m, self.interval, speed, k, syn.w_grid_points,
+            syn.stiffness_grid_points))
+
+    def reference_margin_at(self, speed, k) -> float:
+        """Grid eigenvalue margin of b at this single speed (C grid)."""
+        syn = self.settings.synthesis
+        return self._memo(("b", speed, k), lambda: cond.reference_stability_margin(
+            self.vehicle, self.k_m, self.interval, speed, speed, k,
+            syn.stiffness_grid_points, 2))
+
+    def offset_margin(self, speed) -> float:
+        syn = self.settings.synthesis
+        return self._memo(("c", speed), lambda: cond.steady_state_offset_margin(
+            self.vehicle, self.k_m, self.interval, speed, syn.design_radius_m,
+            self.settings.controller.q_ad_diag, syn.stiffness_grid_points))
+
+    def reference_certified(self, speed, k) -> bool:
+        """Condition b on ``[V_min, speed]`` by corner LMIs on speed segments (cached)."""
+        return self._memo(("b-lmi", speed, k), lambda: certify_reference_stability(
+            self.vehicle, self.k_m, self.interval, self.settings.synthesis.speed_min_mps,
+            speed, k, self.settings.synthesis.lmi_margin))
+
+
+def certify_reference_stability(vehicle, k_m, interval, speed_lo, speed_hi, k,
+                                lmi_margin) -> bool:
+    """Condition b for every (C, V) in ``interval x [speed_lo, speed_hi]``, certified.
+
+    The corner LMI (:func:`synthesis.conditions.reference_stability_lmi`) is tried on the whole
+    speed range, and on failure on its two halves, recursively down to 0.25 m/s segments: each
+    frozen (C, V) is then covered by some certified segment.
+    """
+    @functools.cache
+    def ok(lo, hi):
+        if cond.reference_stability_lmi(vehicle, k_m, interval, lo, hi, k, lmi_margin):
+            return True
+        if hi - lo <= MIN_LMI_SEGMENT_MPS:
+            return False
+        mid = 0.5 * (lo + hi)
+        return ok(lo, mid) and ok(mid, hi)
+
+    return ok(float(speed_lo), float(speed_hi))
+
+
+def speed_grid(settings: Settings, speed_hi_mps: float) -> np.ndarray:
+    """``V_min, V_min + step, ...`` up to ``speed_hi`` (added when off the grid)."""
+    syn = settings.synthesis
+    count = int(np.floor((speed_hi_mps - syn.speed_min_mps) / syn.speed_grid_step_mps + 1e-9))
+    grid = syn.speed_min_mps + syn.speed_grid_step_mps * np.arange(count + 1)
+    if speed_hi_mps - grid[-1] > 1e-9:
+        grid = np.append(grid, speed_hi_mps)
+    return grid
+
+
+def failed_conditions(margins: dict) -> list[str]:
+    """Names of the conditions whose margins are violated, in the order a, b, c, d."""
+    failed = []
+    if margins["l1_condition"] < L1_MARGIN_MIN:
+        failed.append(cond.L1_CONDITION)
+    if margins["reference_stability_per_s"] < EIG_MARGIN_MIN_PER_S:
+        failed.append(cond.REFERENCE_STABILITY)
+    if margins["steady_state_offset_m"] < OFFSET_MARGIN_MIN_M:
+        failed.append(cond.STEADY_STATE_OFFSET)
+    if min(margins["grip_slip_angle_rad"], margins["grip_lateral_accel_mps2"]) < 0.0:
+        failed.append(cond.GRIP)
+    return failed
+
+
+def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float) -> SpeedSearchResult:
+    """Largest safe speed with its filter gain and margins (module docstring)."""
+    vehicle, settings = evaluator.vehicle, evaluator.settings
+    syn = settings.synthesis
+    k_bar = syn.filter_gain_max
+    grid = speed_grid(settings, evaluator.gain_speed_max_mps)
+    decay_margin = -closed_loop_spectral_abscissa(
+        vehicle, evaluator.k_m, evaluator.interval, syn.speed_min_mps,
+        evaluator.gain_speed_max_mps, GAIN_CHECK_POINTS) - syn.decay_rate
+
+    def margins_at(speed, k, ref_floor=np.inf):
+        slip, accel = cond.grip_margins(
+            vehicle, evaluator.interval[0], friction_mu_lo, speed, syn.design_radius_m,
+            syn.slip_angle_max_rad, syn.lateral_accel_fraction)
+        return {
+            "gain_decay_per_s": decay_margin,
+            "l1_condition": evaluator.l1_margin(speed, k),
+            "reference_stability_per_s": min(ref_floor, evaluator.reference_margin_at(speed, k)),
+            "steady_state_offset_m": evaluator.offset_margin(speed),
+            "grip_slip_angle_rad": slip,
+            "grip_lateral_accel_mps2": accel,
+        }
+
+    # grid scan at k_bar; b's grid margin over [V_min, V] is the running minimum
+    scan, floor = [], np.inf
+    for v in grid:
+        m = margins_at(v, k_bar, floor)
+        floor = m["reference_stability_per_s"]
+        scan.append(m)
+
+    chosen = None
+    for i in range(len(grid) - 1, -1, -1):
+        if not failed_conditions(scan[i]) and evaluator.reference_certified(grid[i], k_bar):
+            chosen = i
+            break
+    if chosen is None:
+        held = [len(cond.CONDITIONS) - len(failed_conditions(m)) for m in scan]
+        best = int(np.argmax(held))  # first (lowest) speed among those with the most conditions
+        failed = failed_conditions(scan[best]) or [cond.REFERENCE_STABILITY]
+        return SpeedSearchResult(0.0, float(k_bar), failed[0], scan[best])
+
+    speed, floor = float(grid[chosen]), scan[chosen]["reference_stability_per_s"]
+    if chosen + 1 < len(grid):
+        monotone = {cond.GRIP, cond.REFERENCE_STABILITY}
+        top_failures = set(failed_conditions(scan[chosen + 1])) or {cond.REFERENCE_STABILITY}
+        if top_failures <= monotone:
+            lo, hi = speed, float(grid[chosen + 1])
+            for _ in range(REFINE_BISECTIONS):
+                mid = 0.5 * (lo + hi)
+                m = margins_at(mid, k_bar, floor)
+                if not failed_conditions(m) and evaluator.reference_certified(mid, k_bar):
+                    lo = mid
+                else:
+                    hi = mid
+            speed = lo
+    floor_k = {}
+    for frac in FILTER_GAIN_FRACTIONS:
+        k = float(frac * k_bar)
+        grid_below = [v for v in grid if v <= speed] + [speed]
+        floor_k[k] = min(evaluator.reference_margin_at(v, k) for v in grid_below)
+        m = margins_at(speed, k, floor_k[k])
+        if not failed_conditions(m) and evaluator.reference_certified(speed, k):
+            return SpeedSearchResult(speed, k, "", m)
+    raise AssertionError("k_bar qualified during the scan but not in the final check")

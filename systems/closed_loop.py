@@ -1,0 +1,199 @@
+"""The closed-loop diagram (plant + L1 controller + Saturation + logs) and ``simulate``.
+
+    road curvature (TrajectorySource) --+--> controller --> Saturation --> plant --> state
+    C, mu, V (ConstantVectorSource) ----|------------------------------->   |          |
+                                        +------------------------------->   |          |
+                                        state <------------------------------------------+
+Loggers (``LogVectorOutput``, one sample per tape period) record the plant state, the
+saturated steering and the curvature. ``simulate`` builds the diagram, sets the initial
+state, advances and returns a :class:`Tape` (Drake tutorial style).
+"""
+
+import dataclasses
+
+import numpy as np
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import (
+    ConstantVectorSource,
+    LogVectorOutput,
+    Saturation,
+    TrajectorySource,
+)
+
+from drake_cert.config import Settings, VehicleParams
+from drake_cert.errors import ConfigError
+from synthesis.design import ControllerDesign
+from systems.l1_controller import L1AdaptiveController
+from systems.plants import (
+    ExactDiscreteLinearPlant,
+    LinearLateralPlant,
+    NonlinearLateralPlant,
+    body_state_from_error,
+)
+from systems.road import Road
+
+PLANTS = ("nonlinear", "linear", "linear_sampled")
+
+
+@dataclasses.dataclass
+class Tape:
+    """Logged closed-loop signals of one episode, sampled every tape period."""
+
+    times_s: np.ndarray  # (N,) s
+    states: np.ndarray  # (N, 4) s = [e1 (m), e1dot (m/s), e2 (rad), e2dot (rad/s)]
+    steering_rad: np.ndarray  # (N,) applied (saturated) steering
+    curvature_per_m: np.ndarray  # (N,) road curvature
+    lane_margin_m: float  # |e1| beyond which the car has left its lane
+    speed_mps: float
+    stiffness_n_per_rad: float  # true C per tire
+    friction_mu: float
+    plant: str
+    law: str
+
+    @property
+    def lateral_offset_m(self) -> np.ndarray:
+        """e1(t) (m), > 0 left of the lane centre."""
+        return self.states[:, 0]
+
+
+@dataclasses.dataclass
+class ClosedLoop:
+    """The built diagram and the handles ``simulate`` needs."""
+
+    diagram: Diagram
+    plant: object
+    controller: L1AdaptiveController
+    loggers: dict  # name -> VectorLogSink
+    plant_kind: str
+
+
+def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
+                      stiffness_n_per_rad: float, friction_mu: float, speed_mps: float,
+                      road: Road, plant: str = "nonlinear", law: str | None = None,
+                      t_final_s: float = 20.0, tape_period_s: float = 0.01) -> ClosedLoop:
+    """Wire road source, L1 controller, Saturation, plant and loggers into one Diagram.
+
+    ``plant``: "nonlinear" (Fiala single track), "linear" (eq. 2.45, continuous) or
+    "linear_sampled" (eq. 2.45 discretised exactly with the steering held over T_s; for the
+    piecewise-constant law only, whose updates happen at the same instants).
+    """
+    law = law or settings.controller.adaptation_law
+    if plant not in PLANTS:
+        raise ConfigError(f"unknown plant {plant!r}; expected one of {PLANTS}")
+    if plant == "linear_sampled" and law != "piecewise_constant":
+        raise ConfigError("plant 'linear_sampled' needs law 'piecewise_constant' "
+                          f"(got {law!r})")
+    for name, value in (("stiffness_n_per_rad", stiffness_n_per_rad),
+                        ("friction_mu", friction_mu), ("speed_mps", speed_mps),
+                        ("t_final_s", t_final_s), ("tape_period_s", tape_period_s)):
+        if not (np.isfinite(value) and value > 0):
+            raise ConfigError(f"{name} = {value!r} must be a positive finite number")
+    builder = DiagramBuilder()
+    controller = builder.AddSystem(L1AdaptiveController(
+        vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps, law=law))
+    if plant == "nonlinear":
+        plant_sys = builder.AddSystem(NonlinearLateralPlant(vehicle))
+    elif plant == "linear":
+        plant_sys = builder.AddSystem(LinearLateralPlant(vehicle))
+    else:
+        plant_sys = builder.AddSystem(ExactDiscreteLinearPlant(
+            vehicle, stiffness_n_per_rad, speed_mps, settings.controller.sample_period_s))
+    limit = vehicle.steering_limit_rad
+    saturation = builder.AddNamedSystem("steering_saturation", Saturation([-limit], [limit]))
+    curvature = builder.AddNamedSystem("road_curvature", TrajectorySource(
+        road.curvature_trajectory(speed_mps, t_final_s)))
+    builder.Connect(curvature.get_output_port(), controller.GetInputPort("curvature_per_m"))
+    builder.Connect(curvature.get_output_port(), plant_sys.GetInputPort("curvature_per_m"))
+    builder.Connect(plant_sys.GetOutputPort("state"), controller.GetInputPort("state"))
+    builder.Connect(controller.GetOutputPort("steering_rad"), saturation.get_input_port())
+    builder.Connect(saturation.get_output_port(), plant_sys.GetInputPort("steering_rad"))
+    if plant != "linear_sampled":
+        for port, value in (("stiffness_n_per_rad", stiffness_n_per_rad),
+                            ("friction_mu", friction_mu), ("speed_mps", speed_mps)):
+            src = builder.AddNamedSystem(port, ConstantVectorSource([float(value)]))
+            builder.Connect(src.get_output_port(), plant_sys.GetInputPort(port))
+    loggers = {
+        "state": LogVectorOutput(plant_sys.GetOutputPort("state"), builder, tape_period_s),
+        "steering": LogVectorOutput(saturation.get_output_port(), builder, tape_period_s),
+        "curvature": LogVectorOutput(curvature.get_output_port(), builder, tape_period_s),
+    }
+    diagram = builder.Build()
+    diagram.set_name("lateral_closed_loop")
+    return ClosedLoop(diagram, plant_sys, controller, loggers, plant)
+
+
+def simulator_config(settings: Settings, law: str) -> SimulatorConfig:
+    """Integrator settings used by :func:`simulate` for each law.
+
+    Piecewise-constant law: its updates bound every step to T_s, so a fixed-step RK2 at T_s.
+    Gradient law (stiff at Gamma = 1e4): error-controlled RK3, accuracy 1e-5, steps <= T_s.
+    """
+    cfg = SimulatorConfig()
+    cfg.target_realtime_rate = 0.0
+    cfg.publish_every_time_step = False
+    cfg.max_step_size = settings.controller.sample_period_s
+    if law == "piecewise_constant":
+        cfg.integration_scheme = "runge_kutta2"
+        cfg.use_error_control = False
+    else:
+        cfg.integration_scheme = "runge_kutta3"
+        cfg.use_error_control = True
+        cfg.accuracy = 1e-5
+    return cfg
+
+
+def simulate(*, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
+             stiffness_n_per_rad: float, friction_mu: float, speed_mps: float, road: Road,
+             plant: str = "nonlinear", law: str | None = None, t_final_s: float = 20.0,
+             tape_period_s: float = 0.01, initial_state=None,
+             config: SimulatorConfig | None = None) -> Tape:
+    """Simulate the closed loop for ``t_final_s`` and return the logged :class:`Tape`.
+
+    ``initial_state`` is s(0) = [e1, e1dot, e2, e2dot] (default zeros: on the lane centre);
+    the controller's predictor starts at s(0). ``config`` overrides :func:`simulator_config`.
+    """
+    law = law or settings.controller.adaptation_law
+    loop = build_closed_loop(vehicle=vehicle, design=design, settings=settings,
+                             stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
+                             speed_mps=speed_mps, road=road, plant=plant, law=law,
+                             t_final_s=t_final_s, tape_period_s=tape_period_s)
+    s0 = np.zeros(4) if initial_state is None else np.asarray(initial_state, float).reshape(4)
+    simulator = Simulator(loop.diagram)
+    ApplySimulatorConfig(config or simulator_config(settings, law), simulator)
+    context = simulator.get_mutable_context()
+    set_plant_state(loop, context, s0, speed_mps, float(road.curvature_at(0.0)))
+    loop.controller.set_initial_state(context, s0)
+    simulator.Initialize()
+    simulator.AdvanceTo(t_final_s)
+    return tape_from_loggers(loop, context, vehicle=vehicle, speed_mps=speed_mps,
+                             stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
+                             law=law)
+
+
+def set_plant_state(loop: ClosedLoop, context, s0, speed_mps: float, curvature: float) -> None:
+    """Write the initial error state s0 into the plant's context (body state if nonlinear)."""
+    plant_context = loop.plant.GetMyMutableContextFromRoot(context)
+    if loop.plant_kind == "linear_sampled":
+        plant_context.SetDiscreteState(np.asarray(s0, float))
+    elif loop.plant_kind == "linear":
+        plant_context.SetContinuousState(np.asarray(s0, float))
+    else:
+        core = loop.plant.body_state_subsystem()
+        core.GetMyMutableContextFromRoot(context).SetContinuousState(
+            np.asarray(body_state_from_error(s0, speed_mps, curvature), float))
+
+
+def tape_from_loggers(loop: ClosedLoop, context, *, vehicle: VehicleParams, speed_mps: float,
+                      stiffness_n_per_rad: float, friction_mu: float, law: str) -> Tape:
+    """Collect the three logs into a :class:`Tape` (samples aligned by construction)."""
+    logs = {k: v.FindLog(context) for k, v in loop.loggers.items()}
+    n = min(log.num_samples() for log in logs.values())
+    return Tape(
+        times_s=logs["state"].sample_times()[:n].copy(),
+        states=logs["state"].data()[:, :n].T.copy(),
+        steering_rad=logs["steering"].data()[0, :n].copy(),
+        curvature_per_m=logs["curvature"].data()[0, :n].copy(),
+        lane_margin_m=vehicle.lane_margin_m, speed_mps=float(speed_mps),
+        stiffness_n_per_rad=float(stiffness_n_per_rad), friction_mu=float(friction_mu),
+        plant=loop.plant_kind, law=law)

@@ -1,0 +1,249 @@
+"""Equations of the L1 adaptive lateral controller (DESIGN section 4; paper section IV-B).
+
+Every function here works on floats and on ``pydrake.symbolic`` expressions: called with
+numbers it is the readable reference, called with symbolic variables it builds the
+C++-evaluated systems of :mod:`systems.l1_controller`. Symbols follow the paper:
+
+  u      = -k_m s + u_ad + u_ff                      steering command (rad), then saturated
+  u_ff   = k_ff psidot_des, psidot_des = V kappa      curvature feedforward (nominal e1 = 0)
+  s_hat' = A_m s_hat + b_m (w_hat u_ad + theta_hat' s + sigma_hat + u_ff) + g_hat psidot_des
+  eta    = w_hat u_ad + theta_hat' s + sigma_hat,     u_ad = -k D(s) (eta - k_g r), D = 1/s, r = 0
+
+Two adaptation laws: the continuous gradient law with Gamma and the projection operator
+(:func:`gradient_law`), and the piecewise-constant law sampled at T_s
+(:func:`piecewise_constant_update`), whose 4-vector estimate covers matched and unmatched
+directions.
+"""
+
+import dataclasses
+
+import numpy as np
+import scipy.linalg
+
+from drake_cert.config import Settings, VehicleParams
+from synthesis.design import ControllerDesign
+from synthesis.uncertainty import (
+    E1_SELECTOR,
+    curvature_feedforward_gain,
+    matched_disturbance,
+    matched_uncertainty,
+    nominal_model,
+    reference_gain,
+    stiffness_grid,
+)
+from systems import generic_math as gm
+
+LAWS = ("piecewise_constant", "gradient")
+
+
+@dataclasses.dataclass(frozen=True)
+class L1Parameters:
+    """Numbers the controller needs, all derived from a design at one speed V."""
+
+    speed_mps: float  # V, constant over the episode
+    a_m: np.ndarray  # (4, 4) A(C_hat, V) - b_m k_m, Hurwitz
+    b_m: np.ndarray  # (4,) b(C_hat)
+    g_hat: np.ndarray  # (4,) g(C_hat, V)
+    k_m: np.ndarray  # (4,) state feedback (rad per state unit)
+    k_ff: float  # u_ff = k_ff psidot_des (rad per rad/s)
+    k_g: float  # reference gain -1/(c' A_m^-1 b_m); r = 0 in lane keeping
+    filter_gain: float  # k of D(s) = 1/s (1/s)
+    p_ad: np.ndarray  # (4, 4) A_m' P + P A_m = -Q_ad
+    adaptation_gain: float  # Gamma (1/s)
+    w_centre: float  # centre of the input-gain set [w_l, w_u], w = C / C_hat
+    w_radius: float  # (w_u - w_l) / 2
+    theta_max: float  # radius of the ball holding theta (rad per state unit)
+    sigma_max: float  # bound on |sigma| (rad) at the design curvature
+    projection_epsilon: float  # eps of the projection's convex function
+    sample_period_s: float  # T_s of the piecewise-constant law
+    pc_exp: np.ndarray  # (4, 4) e^{A_m T_s}
+    pc_phi: np.ndarray  # (4, 4) Phi(T_s) = A_m^-1 (e^{A_m T_s} - I)
+    pc_gain: np.ndarray  # (4, 4) -Phi(T_s)^-1 e^{A_m T_s}
+    pc_output_inverse: np.ndarray  # (4,) c' A_m^-1 / (c' A_m^-1 b_m), a left inverse of b_m
+
+
+def l1_parameters(vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
+                  speed_mps: float) -> L1Parameters:
+    """Controller numbers for ``design`` at speed V (DESIGN 4); sets are bound_factor x max."""
+    ctl, syn = settings.controller, settings.synthesis
+    c_hat = design.nominal_stiffness_n_per_rad
+    c_lo, c_hi = design.interval
+    nom = nominal_model(vehicle, c_hat, speed_mps, design.k_m_array)
+    p_ad = scipy.linalg.solve_continuous_lyapunov(nom.a_m.T, -np.diag(ctl.q_ad_diag))
+    grid = stiffness_grid(c_lo, c_hi, syn.stiffness_grid_points)
+    thetas = [matched_uncertainty(vehicle, c, c_hat, speed_mps, design.k_m_array)[1]
+              for c in grid]
+    design_yaw_rate = speed_mps / syn.design_radius_m
+    sigmas = [matched_disturbance(vehicle, c, c_hat, speed_mps, design.k_m_array,
+                                  design_yaw_rate) for c in grid]
+    t = ctl.sample_period_s
+    e = scipy.linalg.expm(nom.a_m * t)
+    phi = np.linalg.solve(nom.a_m, e - np.eye(4))
+    tiny = 1e-9
+    return L1Parameters(
+        speed_mps=float(speed_mps), a_m=nom.a_m, b_m=nom.b_m, g_hat=nom.g_hat,
+        k_m=design.k_m_array, k_ff=curvature_feedforward_gain(nom), k_g=reference_gain(nom),
+        filter_gain=float(design.filter_gain), p_ad=p_ad, adaptation_gain=ctl.adaptation_gain,
+        w_centre=0.5 * (c_lo + c_hi) / c_hat, w_radius=max(0.5 * (c_hi - c_lo) / c_hat, tiny),
+        theta_max=max(ctl.bound_factor * max(np.linalg.norm(th) for th in thetas), tiny),
+        sigma_max=max(ctl.bound_factor * max(abs(sg) for sg in sigmas), tiny),
+        projection_epsilon=ctl.projection_epsilon, sample_period_s=t,
+        pc_exp=e, pc_phi=phi, pc_gain=-np.linalg.solve(phi, e),
+        pc_output_inverse=output_equivalent_inverse(nom.a_m, nom.b_m))
+
+
+def output_equivalent_inverse(a_m: np.ndarray, b_m: np.ndarray) -> np.ndarray:
+    """Row ``r = c' A_m^-1 / (c' A_m^-1 b_m)``: ``r b_m = 1`` and ``r v`` is the input with the
+    same steady-state e1 as a constant disturbance v (Hovakimyan & Cao sec. 3.3,
+    ``H_m(0)^-1 H_um(0)``; c the e1 selector).
+    """
+    c_ainv = np.linalg.solve(a_m.T, E1_SELECTOR)
+    return c_ainv / float(c_ainv @ b_m)
+
+
+# --------------------------------------------------------------------------- common parts
+
+def curvature_feedforward(p: L1Parameters, curvature):
+    """``u_ff = k_ff psidot_des`` with ``psidot_des = V kappa`` (rad)."""
+    return p.k_ff * p.speed_mps * curvature
+
+
+def steering_command(p: L1Parameters, s, u_ad, curvature):
+    """``u = -k_m s + u_ad + u_ff`` (rad, before saturation)."""
+    return -gm.dot(p.k_m, s) + u_ad + curvature_feedforward(p, curvature)
+
+
+def projection_operator(theta, y, theta_max: float, epsilon: float):
+    """Hovakimyan & Cao Def. B.3 projection of the update ``y`` at the estimate ``theta``.
+
+    ``f(th) = ((eps + 1)|th|^2 - thmax^2) / (eps thmax^2)``; where ``f > 0`` and
+    ``y' grad f > 0``, returns ``y - grad f grad f' y f / |grad f|^2``, else ``y``. Along
+    ``thetadot = Gamma Proj(theta, y)`` the estimate never leaves ``|theta| <= thmax``.
+    ``theta`` and ``y`` are 1-D arrays of equal length (floats or symbolic).
+    """
+    theta = np.asarray(theta)
+    y = np.asarray(y)
+    norm2 = gm.dot(theta, theta)
+    f = ((epsilon + 1.0) * norm2 - theta_max**2) / (epsilon * theta_max**2)
+    # grad f = 2 (eps + 1) / (eps thmax^2) theta is a positive multiple of theta, so
+    # y' grad f > 0 iff theta' y > 0, and grad f (grad f' y) f / |grad f|^2 =
+    # theta (theta' y) f / |theta|^2 (|theta| > 0 wherever f > 0).
+    theta_y = gm.dot(theta, y)
+    active = gm.logical_and(f > 0, theta_y > 0)
+    scale = theta_y * f / gm.where(norm2 > 0, norm2, 1.0)
+    return np.array([gm.where(active, y[i] - theta[i] * scale, y[i]) for i in range(len(y))])
+
+
+# --------------------------------------------------------------------------- gradient law
+
+GRADIENT_STATE = ("s_hat", 4), ("w_hat", 1), ("theta_hat", 4), ("sigma_hat", 1), ("u_ad", 1)
+
+
+def unpack_gradient_state(z):
+    """Split the gradient-law controller state into (s_hat, w_hat, theta_hat, sigma_hat, u_ad)."""
+    z = np.asarray(z)
+    return z[0:4], z[4], z[5:9], z[9], z[10]
+
+
+def adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s):
+    """``eta_hat = w_hat u_ad + theta_hat' s + sigma_hat`` (rad)."""
+    return w_hat * u_ad + gm.dot(theta_hat, s) + sigma_hat
+
+
+def predictor_derivative(p: L1Parameters, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad,
+                         curvature):
+    """State predictor with the known inputs u_ff and g_hat psidot_des (DESIGN 4)."""
+    psidot = p.speed_mps * curvature
+    eta = adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s)
+    return (gm.matvec(p.a_m, s_hat) + gm.scaled(p.b_m, eta + curvature_feedforward(p, curvature))
+            + gm.scaled(p.g_hat, psidot))
+
+
+def gradient_law(p: L1Parameters, s_tilde, s, w_hat, theta_hat, sigma_hat, u_ad):
+    """Paper eq. (adaptive) with projection about each set's centre: (w', theta', sigma').
+
+    ``w_hat' = Gamma Proj(w_hat - w_c, -s_tilde' P b_m u_ad)``,
+    ``theta_hat' = Gamma Proj(theta_hat, -s_tilde' P b_m s)``,
+    ``sigma_hat' = Gamma Proj(sigma_hat, -s_tilde' P b_m)``.
+    """
+    e = p.projection_epsilon
+    gamma = p.adaptation_gain
+    pb = gm.dot(s_tilde, p.p_ad @ p.b_m)  # s_tilde' P b_m
+    w_dot = gamma * projection_operator([w_hat - p.w_centre], [-pb * u_ad], p.w_radius, e)[0]
+    theta_dot = gm.scaled(projection_operator(theta_hat, gm.scaled(s, -pb), p.theta_max, e),
+                          gamma)
+    sigma_dot = gamma * projection_operator([sigma_hat], [-pb], p.sigma_max, e)[0]
+    return w_dot, theta_dot, sigma_dot
+
+
+def low_pass_filter_derivative(p: L1Parameters, eta_hat, reference=0.0):
+    """``u_ad' = -k (eta_hat - k_g r)``: the filter ``u_ad = -k D(s)(eta_hat - k_g r)``, D = 1/s."""
+    return -p.filter_gain * (eta_hat - p.k_g * reference)
+
+
+def gradient_controller_derivatives(p: L1Parameters, z, s, curvature):
+    """Time derivative of the gradient-law controller state ``[s_hat, w, theta, sigma, u_ad]``."""
+    s_hat, w_hat, theta_hat, sigma_hat, u_ad = unpack_gradient_state(z)
+    s = np.asarray(s)
+    s_hat_dot = predictor_derivative(p, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad, curvature)
+    w_dot, theta_dot, sigma_dot = gradient_law(p, s_hat - s, s, w_hat, theta_hat, sigma_hat,
+                                               u_ad)
+    u_ad_dot = low_pass_filter_derivative(p, adaptive_signal(w_hat, theta_hat, sigma_hat,
+                                                             u_ad, s))
+    return np.concatenate([s_hat_dot, [w_dot], theta_dot, [sigma_dot], [u_ad_dot]])
+
+
+def gradient_initial_state(p: L1Parameters, s0) -> np.ndarray:
+    """Predictor at the plant's state, w_hat at its set's centre, theta = sigma = u_ad = 0."""
+    return np.concatenate([np.asarray(s0, float), [p.w_centre], np.zeros(4), [0.0], [0.0]])
+
+
+# --------------------------------------------------------------------------- piecewise constant
+
+def piecewise_constant_estimate(p: L1Parameters, s_tilde):
+    """``sigma_hat(iT_s) = -Phi(T_s)^-1 e^{A_m T_s} s_tilde(iT_s)`` (4-vector).
+
+    Hovakimyan & Cao's piecewise-constant law: the estimate that, held over one period,
+    drives the predictor's error to zero at the next sample. It covers matched and
+    unmatched directions; all of it acts on the predictor.
+    """
+    return gm.matvec(p.pc_gain, s_tilde)
+
+
+def compensated_estimate(p: L1Parameters, sigma_hat):
+    """The input-channel equivalent of the 4-vector estimate that enters the filter (rad).
+
+    ``eta_m = r sigma_hat`` with ``r = c' A_m^-1 / (c' A_m^-1 b_m)``: its matched part
+    ``b_m sigma_1`` maps to ``sigma_1``, and its unmatched part to the input with the same
+    steady-state e1 (H&C sec. 3.3 ``eta_2m = H_m^-1 H_um eta_2``, taken at DC). Compensating
+    only the orthogonal matched part ``b_m^+ sigma_hat`` leaves the unmatched stiffness
+    error uncompensated: with a corner-LMI design for heavy rain at its design speed and
+    C = C_lo, the car then ends a 50 m curve 0.5 m (linear plant) to 1.2 m (Fiala plant) off
+    the lane centre.
+    """
+    return gm.dot(p.pc_output_inverse, sigma_hat)
+
+
+def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature):
+    """One sample of the piecewise-constant law: ``(s_hat, u_ad)`` for the next period.
+
+    At t_k, with ``sigma_hat`` from the prediction error and ``eta = u_ad + eta_m``
+    (:func:`compensated_estimate`): the filter ``u_ad' = -k eta`` is solved exactly over
+    T_s with eta held (the new u_ad is applied over [t_k, t_k + T_s)), and the predictor
+    ``s_hat' = A_m s_hat + b_m (u_ad + u_ff) + sigma_hat + g_hat psidot_des`` is solved
+    exactly with its inputs held: ``s_hat(t_k+1) = e^{A_m T} s_hat + Phi(T)(...)``.
+    """
+    s_hat = np.asarray(s_hat)
+    sigma_hat = piecewise_constant_estimate(p, s_hat - np.asarray(s))
+    eta_matched = compensated_estimate(p, sigma_hat)
+    decay = float(np.exp(-p.filter_gain * p.sample_period_s))
+    u_ad_next = decay * u_ad - (1.0 - decay) * eta_matched
+    forcing = (gm.scaled(p.b_m, u_ad_next + curvature_feedforward(p, curvature)) + sigma_hat
+               + gm.scaled(p.g_hat, p.speed_mps * curvature))
+    s_hat_next = gm.matvec(p.pc_exp, s_hat) + gm.matvec(p.pc_phi, forcing)
+    return s_hat_next, u_ad_next
+
+
+def piecewise_constant_initial_state(s0) -> np.ndarray:
+    """Predictor at the plant's state, u_ad = 0: ``[s_hat, u_ad]``."""
+    return np.concatenate([np.asarray(s0, float), [0.0]])

@@ -1,0 +1,248 @@
+"""Lateral vehicle plants with the same named ports (DESIGN section 2).
+
+Input ports (each of size 1):
+  ``steering_rad``         front steering angle u (rad, > 0 left), after the Saturation
+  ``stiffness_n_per_rad``  true cornering stiffness C of ONE tire (N/rad)
+  ``friction_mu``          tire-road friction coefficient mu (-); only the nonlinear plant uses it
+  ``speed_mps``            constant forward speed V (m/s, > 0)
+  ``curvature_per_m``      road curvature kappa (1/m, > 0 left turn)
+Output port:
+  ``state``  s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s): lateral offset from the lane
+             centre (> 0 left) and heading error, Rajamani's error coordinates.
+
+``LinearLateralPlant`` is eq. 2.45; ``NonlinearLateralPlant`` is the single track with
+Fiala brush tires (saturating at mu F_z), exact slip kinematics and Frenet road coordinates.
+Both are ``SymbolicVectorSystem``s behind a ``Multiplexer`` that names the ports, so their
+derivatives are evaluated in C++. ``ExactDiscreteLinearPlant`` is the zero-order-hold
+discretisation of eq. 2.45 at a sample period, for fixed (C, V).
+"""
+
+import numpy as np
+import pydrake.symbolic as sym
+import scipy.linalg
+from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
+
+from drake_cert.config import GRAVITY_MPS2, VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
+from systems import generic_math as gm
+
+PLANT_INPUTS = ("steering_rad", "stiffness_n_per_rad", "friction_mu", "speed_mps",
+                "curvature_per_m")
+
+
+# --------------------------------------------------------------------------- equations
+
+def linear_error_derivatives(vehicle: VehicleParams, s, steering, stiffness, speed, curvature):
+    """``sdot = A(C,V) s + b(C) u + g(C,V) V kappa`` (Rajamani eq. 2.45), float or symbolic."""
+    a, b, g = lateral_error_dynamics(vehicle, stiffness, speed)
+    return (gm.matvec(a, s) + gm.scaled(b, steering)
+            + gm.scaled(g, yaw_rate_command(speed, curvature)))
+
+
+def static_tire_loads(vehicle: VehicleParams) -> tuple[float, float]:
+    """Vertical load per tire (N), front and rear, from the static axle loads."""
+    weight = vehicle.mass_kg * GRAVITY_MPS2
+    wheelbase = vehicle.lf_m + vehicle.lr_m
+    return (0.5 * weight * vehicle.lr_m / wheelbase, 0.5 * weight * vehicle.lf_m / wheelbase)
+
+
+def fiala_lateral_force(slip_angle, stiffness, friction_mu, normal_load):
+    """Fiala brush-tire lateral force of one tire (N) at slip angle a (rad).
+
+    ``F = -C tan a + C^2/(3 mu Fz) |tan a| tan a - C^3/(27 mu^2 Fz^2) tan^3 a`` for
+    ``|tan a| < 3 mu Fz / C``, else ``-mu Fz sign(a)`` (full sliding). Slope -C at a = 0;
+    continuous and monotone, |F| <= mu Fz. Float or symbolic.
+    """
+    t = gm.tan(slip_angle)
+    mu_fz = friction_mu * normal_load
+    adhesion = (-stiffness * t + stiffness**2 / (3.0 * mu_fz) * gm.absolute(t) * t
+                - stiffness**3 / (27.0 * mu_fz**2) * t**3)
+    sliding = -mu_fz * gm.sign(slip_angle)
+    return gm.where(gm.absolute(t) < 3.0 * mu_fz / stiffness, adhesion, sliding)
+
+
+def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, friction_mu,
+                             speed, curvature):
+    """Time derivative of the body state ``x = [e1, vy, e2, r]`` of the nonlinear plant.
+
+    Single track at constant forward speed V (body frame), lateral velocity vy (m/s), yaw
+    rate r (rad/s), Frenet offset e1 and heading error e2 to a road of curvature kappa.
+    Slip angles from the exact kinematics, ``a_f = atan((vy + l_f r)/V) - u``,
+    ``a_r = atan((vy - l_r r)/V)``; two Fiala tires per axle; the front force acts at the
+    steering angle (its longitudinal part is taken up by the drive, V constant).
+    ``e1dot = V sin e2 + vy cos e2``, ``e2dot = r - psidot_road`` with
+    ``psidot_road = kappa (V cos e2 - vy sin e2) / (1 - kappa e1)``.
+    """
+    e1, vy, e2, r = x
+    m, iz, lf, lr = vehicle.mass_kg, vehicle.yaw_inertia_kg_m2, vehicle.lf_m, vehicle.lr_m
+    fz_f, fz_r = static_tire_loads(vehicle)
+    slip_f = gm.atan((vy + lf * r) / speed) - steering
+    slip_r = gm.atan((vy - lr * r) / speed)
+    f_f = 2.0 * fiala_lateral_force(slip_f, stiffness, friction_mu, fz_f)
+    f_r = 2.0 * fiala_lateral_force(slip_r, stiffness, friction_mu, fz_r)
+    vy_dot = (f_f * gm.cos(steering) + f_r) / m - speed * r
+    r_dot = (lf * f_f * gm.cos(steering) - lr * f_r) / iz
+    return np.array([
+        speed * gm.sin(e2) + vy * gm.cos(e2),
+        vy_dot,
+        r - road_yaw_rate(x, speed, curvature),
+        r_dot,
+    ])
+
+
+def road_yaw_rate(x, speed, curvature):
+    """Heading rate of the road at the car's projection, ``kappa (V cos e2 - vy sin e2)/(1 - kappa e1)``."""
+    e1, vy, e2, _ = x
+    return curvature * (speed * gm.cos(e2) - vy * gm.sin(e2)) / (1.0 - curvature * e1)
+
+
+def error_state_from_body(x, speed, curvature):
+    """Error coordinates ``s = [e1, e1dot, e2, e2dot]`` of the body state ``[e1, vy, e2, r]``."""
+    e1, vy, e2, r = x
+    return np.array([e1, speed * gm.sin(e2) + vy * gm.cos(e2), e2,
+                     r - road_yaw_rate(x, speed, curvature)])
+
+
+def body_state_from_error(s, speed, curvature):
+    """Inverse of :func:`error_state_from_body`: ``[e1, vy, e2, r]`` from s (|e2| < pi/2)."""
+    e1, e1dot, e2, e2dot = s
+    vy = (e1dot - speed * gm.sin(e2)) / gm.cos(e2)
+    r = e2dot + road_yaw_rate([e1, vy, e2, 0.0], speed, curvature)
+    return np.array([e1, vy, e2, r])
+
+
+def nonlinear_error_derivatives(vehicle: VehicleParams, s, steering, stiffness, friction_mu,
+                                speed, curvature):
+    """``sdot`` of the nonlinear plant in error coordinates at constant curvature.
+
+    Chain rule of :func:`error_state_from_body` along :func:`single_track_derivatives`
+    (kappa held constant, as eq. 2.45 does); used to compare the two plants. Float or symbolic.
+    """
+    x = body_state_from_error(s, speed, curvature)
+    e1, vy, e2, _ = x
+    e1_dot, vy_dot, e2_dot, r_dot = single_track_derivatives(
+        vehicle, x, steering, stiffness, friction_mu, speed, curvature)
+    along = speed * gm.cos(e2) - vy * gm.sin(e2)  # road-direction speed (m/s)
+    along_dot = (-speed * gm.sin(e2) - vy * gm.cos(e2)) * e2_dot - gm.sin(e2) * vy_dot
+    shrink = 1.0 - curvature * e1
+    road_yaw_dot = curvature * (along_dot / shrink + along * curvature * e1_dot / shrink**2)
+    return np.array([
+        e1_dot,
+        along * e2_dot + gm.cos(e2) * vy_dot,
+        e2_dot,
+        r_dot - road_yaw_dot,
+    ])
+
+
+# --------------------------------------------------------------------------- systems
+
+class _NamedInputPlant(Diagram):
+    """Exports each scalar input of a vector system under a name, and its output as "state"."""
+
+    def _build(self, builder: DiagramBuilder, core, input_names, output_port) -> None:
+        mux = builder.AddSystem(Multiplexer([1] * len(input_names)))
+        builder.Connect(mux.get_output_port(0), core.get_input_port(0))
+        for i, name in enumerate(input_names):
+            builder.ExportInput(mux.get_input_port(i), name)
+        builder.ExportOutput(output_port, "state")
+        builder.BuildInto(self)
+
+
+class LinearLateralPlant(_NamedInputPlant):
+    """Rajamani eq. 2.45 as a continuous-time system (C++-evaluated); state = output = s.
+
+    ``friction_mu`` is accepted (same ports as the nonlinear plant) and ignored.
+    """
+
+    def __init__(self, vehicle: VehicleParams):
+        super().__init__()
+        s = sym.MakeVectorVariable(4, "s")
+        u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
+        with np.errstate(invalid="ignore"):  # numpy flags object arithmetic spuriously
+            dynamics = linear_error_derivatives(vehicle, s, u, c, v, kappa)
+        builder = DiagramBuilder()
+        core = builder.AddNamedSystem("eq_2_45", SymbolicVectorSystem(
+            state=s, input=[u, c, mu, v, kappa], dynamics=dynamics, output=s))
+        self._build(builder, core, PLANT_INPUTS, core.get_output_port(0))
+        self.set_name("linear_lateral_plant")
+
+
+class NonlinearLateralPlant(_NamedInputPlant):
+    """Single track with Fiala tires; continuous state ``[e1, vy, e2, r]``, output s.
+
+    The output s depends on ``curvature_per_m`` directly (e2dot = r - road yaw rate), not on
+    ``steering_rad``, so a state-feedback controller closes no algebraic loop.
+    """
+
+    def __init__(self, vehicle: VehicleParams):
+        super().__init__()
+        x = sym.MakeVectorVariable(4, "x")
+        u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
+        builder = DiagramBuilder()
+        dynamics = builder.AddNamedSystem("single_track", SymbolicVectorSystem(
+            state=x, input=[u, c, mu, v, kappa],
+            dynamics=single_track_derivatives(vehicle, x, u, c, mu, v, kappa), output=x))
+        xin = sym.MakeVectorVariable(4, "x_in")
+        v_in, kappa_in = sym.Variable("speed"), sym.Variable("curvature")
+        # Drake 1.51's SymbolicVectorSystem requires a state when it sits in a continuous
+        # diagram; the output map carries one constant dummy state (derivative 0).
+        dummy = sym.Variable("unused")
+        to_error = builder.AddNamedSystem("error_coordinates", SymbolicVectorSystem(
+            state=[dummy], input=np.concatenate([xin, [v_in, kappa_in]]),
+            dynamics=[sym.Expression(0.0)], output=error_state_from_body(xin, v_in, kappa_in)))
+        # (x, V, kappa) -> s; V and kappa come from the exported inputs' multiplexer.
+        mux = builder.AddSystem(Multiplexer([1] * len(PLANT_INPUTS)))
+        builder.Connect(mux.get_output_port(0), dynamics.get_input_port(0))
+        out_mux = builder.AddSystem(Multiplexer([4, 1, 1]))
+        builder.Connect(dynamics.get_output_port(0), out_mux.get_input_port(0))
+        builder.Connect(out_mux.get_output_port(0), to_error.get_input_port(0))
+        for i, name in enumerate(PLANT_INPUTS):
+            builder.ExportInput(mux.get_input_port(i), name)
+        # A second route of the speed and curvature inputs into the output map.
+        builder.ConnectInput("speed_mps", out_mux.get_input_port(1))
+        builder.ConnectInput("curvature_per_m", out_mux.get_input_port(2))
+        builder.ExportOutput(to_error.get_output_port(0), "state")
+        builder.BuildInto(self)
+        self.set_name("nonlinear_lateral_plant")
+        self._dynamics = dynamics
+
+    def body_state_subsystem(self):
+        """The SymbolicVectorSystem holding the continuous body state ``[e1, vy, e2, r]``."""
+        return self._dynamics
+
+
+def exact_discretisation(vehicle: VehicleParams, stiffness, speed, period):
+    """ZOH discretisation of eq. 2.45: ``s[k+1] = Ad s[k] + Bd [u[k], kappa[k]]``, exact."""
+    a, b, g = lateral_error_dynamics(vehicle, float(stiffness), float(speed))
+    m = np.zeros((6, 6))
+    m[:4, :4] = a
+    m[:4, 4] = b
+    m[:4, 5] = g * speed  # psidot_des = V kappa
+    e = scipy.linalg.expm(m * period)
+    return e[:4, :4], e[:4, 4:]
+
+
+class ExactDiscreteLinearPlant(Diagram):
+    """Eq. 2.45 sampled with zero-order hold at ``period_s`` for fixed (C, V): exact.
+
+    Inputs ``steering_rad`` and ``curvature_per_m`` only (C and V are construction
+    parameters of a constant-parameter episode); output ``state`` = s[k]. Steering and
+    curvature are read at the sample instants and held for one period.
+    """
+
+    def __init__(self, vehicle: VehicleParams, stiffness_n_per_rad: float, speed_mps: float,
+                 period_s: float):
+        super().__init__()
+        ad, bd = exact_discretisation(vehicle, stiffness_n_per_rad, speed_mps, period_s)
+        builder = DiagramBuilder()
+        core = builder.AddNamedSystem("eq_2_45_zoh", AffineSystem(
+            A=ad, B=bd, f0=np.zeros(4), C=np.eye(4), D=np.zeros((4, 2)), y0=np.zeros(4),
+            time_period=period_s))
+        mux = builder.AddSystem(Multiplexer([1, 1]))
+        builder.Connect(mux.get_output_port(0), core.get_input_port(0))
+        builder.ExportInput(mux.get_input_port(0), "steering_rad")
+        builder.ExportInput(mux.get_input_port(1), "curvature_per_m")
+        builder.ExportOutput(core.get_output_port(0), "state")
+        builder.BuildInto(self)
+        self.set_name("exact_discrete_linear_plant")

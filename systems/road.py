@@ -1,0 +1,67 @@
+"""Road description: curvature as a piecewise-linear function of arc length.
+
+``Road(knots_m, curvature_per_m)``: curvature kappa (1/m, > 0 left turn) at arc lengths
+(m), linear in between (a clothoid between knots), constant after the last knot. At the
+constant speed V of an episode the car is at arc length V t, and the curvature signal is a
+``TrajectorySource`` of a first-order-hold ``PiecewisePolynomial`` (evaluated in C++).
+"""
+
+import dataclasses
+
+import numpy as np
+from pydrake.trajectories import PiecewisePolynomial
+
+from drake_cert.errors import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class Road:
+    """Piecewise-linear curvature profile along the lane centre."""
+
+    knots_m: tuple[float, ...]  # arc lengths (m), strictly increasing, first is 0
+    curvature_per_m: tuple[float, ...]  # curvature at each knot (1/m)
+
+    def __post_init__(self):
+        k = np.asarray(self.knots_m, float)
+        if len(k) < 1 or len(k) != len(self.curvature_per_m):
+            raise ConfigError(f"road: {len(self.knots_m)} knots and "
+                              f"{len(self.curvature_per_m)} curvatures must match (>= 1)")
+        if k[0] != 0.0 or np.any(np.diff(k) <= 0):
+            raise ConfigError(f"road: knots_m = {list(self.knots_m)} must start at 0 and "
+                              "increase strictly")
+
+    @staticmethod
+    def straight() -> "Road":
+        """A straight road."""
+        return Road((0.0,), (0.0,))
+
+    @staticmethod
+    def curve(*, radius_m: float, straight_m: float = 40.0, transition_m: float = 20.0,
+              curve_m: float = 150.0, left: bool = True) -> "Road":
+        """Straight, clothoid into a circular arc of ``radius_m``, clothoid out, straight."""
+        if not radius_m > 0:
+            raise ConfigError(f"road: radius_m = {radius_m!r} must be positive")
+        kappa = (1.0 if left else -1.0) / radius_m
+        a = straight_m
+        b = a + transition_m
+        c = b + curve_m
+        d = c + transition_m
+        return Road((0.0, a, b, c, d), (0.0, 0.0, kappa, kappa, 0.0))
+
+    def curvature_at(self, arc_length_m) -> np.ndarray:
+        """Curvature (1/m) at the given arc lengths (m)."""
+        return np.interp(arc_length_m, self.knots_m, self.curvature_per_m)
+
+    def max_abs_curvature(self) -> float:
+        """Largest |kappa| along the road (1/m)."""
+        return float(np.max(np.abs(self.curvature_per_m)))
+
+    def curvature_trajectory(self, speed_mps: float, t_final_s: float) -> PiecewisePolynomial:
+        """kappa(t) = kappa(V t) on [0, t_final] as a first-order-hold PiecewisePolynomial."""
+        if not speed_mps > 0:
+            raise ConfigError(f"road: speed_mps = {speed_mps!r} must be positive")
+        times = [k / speed_mps for k in self.knots_m if k / speed_mps < t_final_s]
+        times.append(max(t_final_s, times[-1] + 1e-6))
+        values = self.curvature_at(np.asarray(times) * speed_mps)
+        return PiecewisePolynomial.FirstOrderHold(np.asarray(times),
+                                                  values.reshape(1, -1))

@@ -1,0 +1,22 @@
+"""Shared pytest fixtures (add fixtures additively; keep each one cheap or session-scoped)."""
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def default_design_table():
+    """The design table synthesized once for the shipped vehicle, conditions and settings.
+
+    A ``synthesis.design_io.DesignTable`` (designs in ``synthesis.table.design_label_ranges``
+    order); takes a few seconds, shared by the synthesis and verify tests.
+    """
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from drake_cert.io import provenance
+    from synthesis.design_io import DesignTable
+    from synthesis.table import synthesize_table
+
+    vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
+    designs = synthesize_table(vehicle, conditions, settings)
+    return DesignTable(designs, vehicle, settings,
+                       provenance(seed=None, command=["pytest", "default_design_table"]),
+                       conditions)

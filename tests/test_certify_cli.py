@@ -1,0 +1,120 @@
+"""`drake-cert certify`: the numbers it reports, and one line + exit 2 for bad inputs.
+
+Uses small (untrained, seeded) SmallResNet files written to a temporary model folder and
+16x16 frames, so that the command's plumbing is tested in seconds; the statistics themselves
+are tested in test_smoothing.py.
+"""
+
+import json
+
+import pytest
+import torch
+
+from drake_cert import cli
+from drake_cert.models import (
+    SmallResNet,
+    StiffnessRegressor,
+    file_sha256,
+    model_path,
+    save_model,
+)
+
+PRESET = "rtk-like"
+FAST = ["--preset", PRESET, "--size", "16", "--frames", "3", "--n0", "10", "--n", "200",
+        "--batch-size", "100", "--compile", "off", "--attack-steps", "2"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    root = tmp_path_factory.mktemp("models")
+    torch.manual_seed(0)
+    for sigma in (0.0, 0.25):
+        classifier = SmallResNet(3, width=4).eval()
+        cpath = save_model(classifier, model_path(PRESET, "classify", sigma, root),
+                           meta={"image_size": 16})
+        head = torch.nn.Linear(16, 1)
+        torch.nn.init.zeros_(head.weight)
+        torch.nn.init.constant_(head.bias, 50_000.0)
+        save_model(StiffnessRegressor(classifier.backbone, head),
+                   model_path(PRESET, "regress", sigma, root),
+                   meta={"image_size": 16, "classifier_file": cpath.name,
+                         "classifier_sha256": file_sha256(cpath)})
+    return str(root)
+
+
+def _run_json(capsys, args):
+    assert cli.main(["certify", *args, "--json"]) == 0
+    return json.loads(capsys.readouterr().out)
+
+
+def test_certify_reports_accuracy_radius_abstain_rate_and_interval(models, capsys):
+    out = _run_json(capsys, [*FAST, "--models", models, "--sigma", "0.25", "--attack", "sa"])
+    s = out["summary"]
+    assert s["frames"] == 3 and len(out["records"]) == 3
+    for key in ("accuracy", "clean_accuracy", "abstain_rate", "interval_coverage",
+                "envelope_rate"):
+        assert 0.0 <= s[key] <= 1.0
+    assert s["mean_radius"] >= 0 and s["interval_width_mean"] > 0
+    assert {r["label"] for r in out["records"]} == {0, 1, 2}  # balanced frame choice
+    assert out["provenance"]["seed"] == 0
+
+
+def test_certify_base_model_reports_attack_accuracy_and_no_radius(models, capsys):
+    out = _run_json(capsys, [*FAST, "--models", models, "--sigma", "0", "--attack", "ea"])
+    assert "mean_radius" not in out["summary"]
+    assert 0.0 <= out["summary"]["accuracy"] <= 1.0
+    assert cli.main(["certify", *FAST, "--models", models, "--sigma", "0"]) == 0
+    assert "no certificate" in capsys.readouterr().out
+
+
+def test_certify_regressor_reports_interval_within_the_envelope(models, capsys):
+    out = _run_json(capsys, [*FAST, "--models", models, "--sigma", "0.25", "--task", "regress",
+                             "--eps", "0.1", "--calibration-per-class", "3",
+                             "--calibration-n", "50"])
+    s = out["summary"]
+    # 3 calibration frames per label are too few for alpha_c = 0.01: beta is infinite and
+    # the interval is the envelope (30k-60k for rtk-like), which holds every true stiffness.
+    assert s["beta_n_per_rad"] == float("inf")
+    assert s["interval_coverage"] == 1.0 and s["interval_width_mean"] == 30_000.0
+
+
+def test_certify_text_output_names_the_metrics(models, capsys):
+    assert cli.main(["certify", *FAST, "--models", models, "--sigma", "0.25"]) == 0
+    text = capsys.readouterr().out
+    for word in ("accuracy", "abstain rate", "mean certified radius", "coverage"):
+        assert word in text
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--sigma", "-1"], "sigma"),
+    (["--sigma", "0.25", "--alpha", "1.5"], "alpha"),
+    (["--sigma", "0.25", "--n", "5"], "n = 5 samples can never certify"),
+    (["--sigma", "0.5"], "make it with: drake-cert train"),
+    (["--sigma", "0.25", "--task", "regress", "--eps", "5"], "too few"),
+    (["--sigma", "0.25", "--device", "cuda"], "CUDA is not available"),
+])
+def test_bad_inputs_give_one_line_and_exit_2(models, capsys, extra, message):
+    # argparse keeps the last of a repeated option, so `extra` overrides FAST.
+    assert cli.main(["certify", *FAST, "--models", models, *extra]) == 2
+    err = capsys.readouterr().err.strip()
+    assert message in err and len(err.splitlines()) == 1 and "Traceback" not in err
+
+
+def test_malformed_numbers_are_usage_errors(models, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["certify", *FAST, "--models", models, "--sigma", "0.25", "--n", "many"])
+    assert exit_info.value.code == 2
+    assert "'many' is not an integer" in capsys.readouterr().err
+
+
+def test_unknown_preset_exits_2(models, capsys):
+    assert cli.main(["certify", "--preset", "mars", "--sigma", "0.25", "--models", models]) == 2
+    assert "unknown preset 'mars'" in capsys.readouterr().err

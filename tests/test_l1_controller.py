@@ -1,0 +1,154 @@
+"""The L1 adaptive controller (DESIGN 4) as Drake systems, and the closed loop it makes."""
+
+import dataclasses
+
+import numpy as np
+import pytest
+from design_fixtures import lqr_design
+
+from drake_cert import metrics
+from drake_cert.config import load_conditions, load_settings, load_vehicle
+from systems import l1_law
+from systems.closed_loop import simulate
+from systems.l1_controller import L1AdaptiveController
+from systems.road import Road
+
+CAR = load_vehicle()
+SETTINGS = load_settings()
+SPEED = 12.0
+DESIGN = lqr_design(CAR, 40_000.0, 60_000.0, SPEED)
+
+
+@pytest.fixture(scope="module")
+def heavy_rain_design():
+    """The synthesized design (corner-LMI gain, filter gain, safe speed) for heavy rain."""
+    from synthesis.table import synthesize_design
+
+    conditions = load_conditions()
+    labels = ["heavy_rain"]
+    design = synthesize_design(CAR, conditions.hull(labels), conditions.least_friction(labels),
+                               SETTINGS, labels)
+    assert design.has_safe_speed
+    return design
+
+
+def _controller_context(law):
+    ctrl = L1AdaptiveController(vehicle=CAR, design=DESIGN, settings=SETTINGS,
+                                speed_mps=SPEED, law=law)
+    ctx = ctrl.CreateDefaultContext()
+    s = np.array([0.2, -0.3, 0.05, 0.1])
+    kappa = 1 / 60
+    ctrl.GetInputPort("state").FixValue(ctx, s)
+    ctrl.GetInputPort("curvature_per_m").FixValue(ctx, [kappa])
+    return ctrl, ctx, s, kappa
+
+
+def test_gradient_law_system_evaluates_the_reference_equations():
+    ctrl, ctx, s, kappa = _controller_context("gradient")
+    p = ctrl.parameters
+    rng = np.random.default_rng(1)
+    # An estimate near the projection boundary, so the projection branch is exercised.
+    z = np.concatenate([s + rng.normal(0, 0.05, 4), [p.w_centre + 0.99 * p.w_radius],
+                        0.99 * p.theta_max * np.array([0.6, 0.0, 0.8, 0.0]),
+                        [-0.5 * p.sigma_max], [0.01]])
+    ctrl.core().GetMyMutableContextFromRoot(ctx).SetContinuousState(z)
+    expected = l1_law.gradient_controller_derivatives(p, z, s, kappa).astype(float)
+    np.testing.assert_allclose(ctrl.EvalTimeDerivatives(ctx).CopyToVector(), expected,
+                               rtol=1e-12, atol=1e-12)
+    u = ctrl.GetOutputPort("steering_rad").Eval(ctx)[0]
+    assert u == pytest.approx(l1_law.steering_command(p, s, z[10], kappa), rel=1e-13)
+
+
+def test_piecewise_constant_system_evaluates_the_reference_update():
+    ctrl, ctx, s, kappa = _controller_context("piecewise_constant")
+    p = ctrl.parameters
+    z = np.array([0.25, -0.2, 0.04, 0.12, 0.003])
+    ctrl.core().GetMyMutableContextFromRoot(ctx).SetDiscreteState(z)
+    s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, z[:4], z[4], s, kappa)
+    update = ctrl.EvalUniquePeriodicDiscreteUpdate(ctx).get_vector().CopyToVector()
+    np.testing.assert_allclose(update, np.append(s_hat_next, u_ad_next), rtol=1e-10,
+                               atol=1e-12)
+    u = ctrl.GetOutputPort("steering_rad").Eval(ctx)[0]
+    assert u == pytest.approx(l1_law.steering_command(p, s, z[4], kappa), rel=1e-13)
+
+
+def test_piecewise_constant_estimate_cancels_the_prediction_error_in_one_period():
+    # If the plant follows the nominal model exactly, the estimate computed from any
+    # prediction error makes the predictor meet the plant at the next sample.
+    p = l1_law.l1_parameters(CAR, DESIGN, SETTINGS, SPEED)
+    s, s_hat, u_ad, kappa = (np.array([0.1, 0.0, 0.02, 0.0]), np.array([0.3, 0.1, -0.01, 0.05]),
+                             0.002, 1 / 80)
+    s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, s_hat, u_ad, s, kappa)
+    psidot = SPEED * kappa
+    forcing = p.b_m * (u_ad_next + p.k_ff * psidot) + p.g_hat * psidot
+    s_next = p.pc_exp @ s + p.pc_phi @ forcing  # nominal plant, u = -k_m s + u_ad + u_ff
+    np.testing.assert_allclose(s_hat_next, s_next, atol=1e-12)
+
+
+def test_adaptation_sets_contain_the_true_parameters_of_the_interval():
+    p = l1_law.l1_parameters(CAR, DESIGN, SETTINGS, SPEED)
+    from synthesis.uncertainty import matched_uncertainty
+
+    for c in np.linspace(*DESIGN.interval, 7):
+        w, theta, _ = matched_uncertainty(CAR, c, DESIGN.nominal_stiffness_n_per_rad, SPEED,
+                                          DESIGN.k_m_array)
+        assert abs(w - p.w_centre) <= p.w_radius * (1 + 1e-12)
+        assert np.linalg.norm(theta) <= p.theta_max / SETTINGS.controller.bound_factor * (1 + 1e-9)
+
+
+def test_adaptive_loop_removes_the_offset_left_by_a_wrong_stiffness():
+    # Linear plant, constant left curve, true C at the interval's lower end: the feedforward
+    # alone (computed for C_hat) leaves an offset; the adaptive loop drives it back.
+    road = Road((0.0,), (1 / 50,))
+    start = dataclasses.replace(DESIGN)
+    tape = simulate(vehicle=CAR, design=start, settings=SETTINGS, stiffness_n_per_rad=40_000.0,
+                    friction_mu=0.9, speed_mps=SPEED, road=road, plant="linear_sampled",
+                    law="piecewise_constant", t_final_s=8.0)
+    assert abs(metrics.final_offset(tape)) < 0.01
+    assert not metrics.left_lane(tape)
+
+
+def test_sampled_and_continuous_linear_plants_agree():
+    road = Road.curve(radius_m=50.0, straight_m=10.0, curve_m=30.0)
+    kw = dict(vehicle=CAR, design=DESIGN, settings=SETTINGS, stiffness_n_per_rad=45_000.0,
+              friction_mu=0.9, speed_mps=SPEED, road=road, law="piecewise_constant",
+              t_final_s=6.0)
+    sampled = simulate(plant="linear_sampled", **kw)
+    continuous = simulate(plant="linear", **kw)
+    peak = metrics.peak_lateral_offset(continuous)
+    assert peak > 1e-3
+    np.testing.assert_allclose(sampled.states[:, 0], continuous.states[:, 0], atol=0.02 * peak)
+
+
+def test_both_laws_keep_the_linear_car_in_its_lane_on_a_curve():
+    road = Road.curve(radius_m=50.0, straight_m=10.0, curve_m=30.0)
+    for law in l1_law.LAWS:
+        tape = simulate(vehicle=CAR, design=DESIGN, settings=SETTINGS,
+                        stiffness_n_per_rad=58_000.0, friction_mu=0.9, speed_mps=SPEED,
+                        road=road, plant="linear", law=law, t_final_s=6.0)
+        assert not metrics.left_lane(tape), law
+        assert metrics.peak_lateral_offset(tape) < 0.1, law
+
+
+def test_car_stays_in_lane_on_the_nonlinear_plant_at_the_design_speed(heavy_rain_design):
+    d = heavy_rain_design
+    road = Road.curve(radius_m=SETTINGS.synthesis.design_radius_m, straight_m=20.0,
+                      curve_m=60.0)
+    for stiffness in d.interval:
+        tape = simulate(vehicle=CAR, design=d, settings=SETTINGS, stiffness_n_per_rad=stiffness,
+                        friction_mu=d.friction_mu_lo, speed_mps=d.speed_mps, road=road,
+                        plant="nonlinear", t_final_s=110.0 / d.speed_mps)
+        assert not metrics.left_lane(tape), (stiffness, metrics.peak_lateral_offset(tape))
+
+
+def test_car_leaves_the_lane_far_above_the_grip_limit(heavy_rain_design):
+    d = heavy_rain_design
+    radius = SETTINGS.synthesis.design_radius_m
+    grip_limit = np.sqrt(d.friction_mu_lo * 9.81 * radius)  # a_y = mu g on the curve
+    speed = 1.5 * grip_limit
+    road = Road.curve(radius_m=radius, straight_m=20.0, curve_m=60.0)
+    tape = simulate(vehicle=CAR, design=d, settings=SETTINGS,
+                    stiffness_n_per_rad=d.stiffness_lo_n_per_rad, friction_mu=d.friction_mu_lo,
+                    speed_mps=speed, road=road, plant="nonlinear", t_final_s=110.0 / speed)
+    assert metrics.left_lane(tape)
+    assert metrics.peak_lateral_offset(tape) > CAR.lane_margin_m

@@ -1,0 +1,144 @@
+"""Perception models: the ResNet classifier, its regressor head, files, training and resume."""
+
+import pytest
+import torch
+
+from drake_cert.datasets import load_split
+from drake_cert.errors import ConfigError, ModelNotFoundError
+from drake_cert.models import (
+    SmallResNet,
+    StiffnessRegressor,
+    file_sha256,
+    load_model,
+    model_path,
+    save_model,
+)
+from drake_cert.probe import mean_colour_probe_accuracy
+from drake_cert.training import (
+    TrainConfig,
+    evaluate_accuracy,
+    evaluate_mse,
+    fit_regressor,
+    train_classifier,
+)
+
+TINY = TrainConfig(width=8, batch_size=32, epochs=8)
+SHIPPED_PRESETS = ["carla-like", "rtk-like", "robotcar-like"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="module")
+def tiny():
+    """A width-8 classifier trained for 8 epochs on 60 carla-like frames per class (~2 s)."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    train = load_split("carla-like", "train", frames_per_class=60)
+    test = load_split("carla-like", "test", frames_per_class=30)
+    model, metrics = train_classifier(train, sigma=0.0, seed=0, config=TINY)
+    torch.set_num_threads(before)
+    return model, metrics, train, test
+
+
+def test_resnet_maps_frames_to_features_and_logits():
+    model = SmallResNet(4, width=8).eval()
+    x = torch.rand(5, 3, 64, 64)
+    assert model.features(x).shape == (5, 32)
+    assert model(x).shape == (5, 4)
+    assert model(torch.rand(2, 3, 32, 32)).shape == (2, 4)  # global pooling: any size
+
+
+def test_tiny_training_learns_above_chance(tiny):
+    model, metrics, _, test = tiny
+    assert not model.training
+    assert evaluate_accuracy(model, test) > 0.5  # chance is 1/3
+    assert metrics["epochs"] == 8 and metrics["train_accuracy"] > 0.5
+
+
+def test_a_cnn_beats_the_mean_colour_probe_by_20_points(tiny):
+    model, _, train, test = tiny
+    assert evaluate_accuracy(model, test) >= mean_colour_probe_accuracy(train, test) + 0.2
+
+
+def test_training_is_deterministic_and_resumes_from_its_checkpoint(tmp_path):
+    train = load_split("robotcar-like", "train", frames_per_class=16, size=32)
+    cfg = TrainConfig(width=4, batch_size=16, epochs=2)
+    straight, _ = train_classifier(train, sigma=0.25, seed=7, config=cfg)
+
+    def interrupt(epoch):
+        if epoch == 1:
+            raise KeyboardInterrupt
+
+    ckpt = tmp_path / "model.pt.ckpt"
+    with pytest.raises(KeyboardInterrupt):
+        train_classifier(train, sigma=0.25, seed=7, config=cfg, checkpoint=ckpt,
+                         on_epoch_end=interrupt)
+    assert ckpt.exists()
+    epochs_run = []
+    resumed, _ = train_classifier(train, sigma=0.25, seed=7, config=cfg, checkpoint=ckpt,
+                                  on_epoch_end=epochs_run.append)
+    assert epochs_run == [2]  # only the missing epoch ran
+    for a, b in zip(straight.state_dict().values(), resumed.state_dict().values(), strict=True):
+        assert torch.equal(a, b)
+    other, _ = train_classifier(train, sigma=0.25, seed=8, config=cfg)
+    assert not torch.equal(other.fc.weight, straight.fc.weight)
+
+
+def test_regressor_head_predicts_stiffness_in_n_per_rad(tiny, tmp_path):
+    model, _, train, test = tiny
+    regressor, metrics = fit_regressor(model, train, sigma=0.0, seed=0)
+    pred = regressor(test.images[:7])
+    assert pred.shape == (7,)
+    # better than predicting the mean stiffness (the classes' intervals differ)
+    var = float(test.stiffness_n_per_rad.double().var())
+    assert evaluate_mse(regressor, test) < 0.6 * var
+    assert metrics["train_mse_n_per_rad_sq"] < 0.6 * var
+    # the features stay frozen: only the head is new
+    assert all(not p.requires_grad for p in regressor.features.parameters())
+
+
+def test_saved_models_reload_with_their_provenance(tiny, tmp_path):
+    model, metrics, train, test = tiny
+    cpath = save_model(model, model_path("carla-like", "classify", 0.25, tmp_path),
+                       meta={"label_names": train.label_names, "train_metrics": metrics})
+    assert cpath == tmp_path / "carla-like" / "classify_sigma0.25.pt"
+    regressor, _ = fit_regressor(model, train, sigma=0.25, seed=0)
+    save_model(regressor, model_path("carla-like", "regress", 0.25, tmp_path),
+               meta={"classifier_file": cpath.name, "classifier_sha256": file_sha256(cpath)})
+    loaded = load_model("carla-like", "classify", 0.25, tmp_path)
+    assert not loaded.training and loaded.meta["label_names"] == train.label_names
+    assert torch.equal(loaded(test.images[:4]), model(test.images[:4]))
+    loaded_r = load_model("carla-like", "regress", 0.25, tmp_path)
+    assert isinstance(loaded_r, StiffnessRegressor)
+    assert torch.allclose(loaded_r(test.images[:4]), regressor(test.images[:4]))
+    # a regressor refuses features from another classifier file
+    save_model(SmallResNet(3, width=8), cpath, meta={})
+    with pytest.raises(ConfigError, match="refit"):
+        load_model("carla-like", "regress", 0.25, tmp_path)
+
+
+def test_missing_model_names_the_command_that_makes_it(tmp_path):
+    with pytest.raises(ModelNotFoundError,
+                       match="drake-cert train --preset carla-like --task classify --sigma 0.5"):
+        load_model("carla-like", "classify", 0.5, tmp_path)
+    with pytest.raises(ConfigError, match="sigma = -1"):
+        model_path("carla-like", "classify", -1)
+
+
+@pytest.mark.parametrize("preset", SHIPPED_PRESETS)
+def test_shipped_nonrobust_classifier_is_at_least_95_percent_accurate(preset):
+    """The paper's f (sigma = 0) on clean held-out test frames; the probe is 20 points below."""
+    test = load_split(preset, "test", frames_per_class=100)
+    model = load_model(preset, "classify", 0.0)
+    accuracy = evaluate_accuracy(model, test)
+    assert accuracy >= 0.95
+    assert model.meta["label_names"] == test.label_names
+    assert "drake-cert train --preset" in model.meta["provenance"]["command"]
+    probe_train = load_split(preset, "calibration", frames_per_class=100)
+    assert mean_colour_probe_accuracy(probe_train, test) <= accuracy - 0.2

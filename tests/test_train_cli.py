@@ -1,0 +1,79 @@
+"""`drake-cert train` and `drake-cert generate`: files, manifest, skipping, one-line errors."""
+
+import json
+
+import pytest
+import torch
+import yaml
+
+from drake_cert import cli
+from drake_cert.models import load_model, model_path
+
+TINY = ["--preset", "rtk-like", "--frames-per-class", "12", "--epochs", "1"]
+
+
+@pytest.fixture(autouse=True)
+def one_thread():
+    before = torch.get_num_threads()
+    yield
+    torch.set_num_threads(before)
+
+
+def _one_error_line(capsys, argv, *needles):
+    assert cli.main(argv) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    for needle in needles:
+        assert needle in err[0]
+
+
+def test_train_rejects_an_unknown_preset_with_one_line(capsys, tmp_path):
+    _one_error_line(capsys, ["train", "--preset", "kitti", "--sigma", "0", "--models",
+                             str(tmp_path)], "unknown preset 'kitti'")
+
+
+@pytest.mark.parametrize("sigma", ["-0.5", "nan", "big"])
+def test_train_rejects_a_bad_sigma_with_one_line(capsys, tmp_path, sigma):
+    _one_error_line(capsys, ["train", "--preset", "rtk-like", "--sigma", sigma, "--models",
+                             str(tmp_path)], f"sigma = '{sigma}'")
+
+
+def test_regressor_without_its_classifier_names_the_command(capsys, tmp_path):
+    _one_error_line(capsys, ["train", "--preset", "rtk-like", "--task", "regress", "--sigma",
+                             "0.25", "--models", str(tmp_path)],
+                    "drake-cert train --preset rtk-like --task classify --sigma 0.25")
+
+
+def test_train_writes_models_with_provenance_and_a_manifest_then_skips(capsys, tmp_path):
+    root = str(tmp_path)
+    assert cli.main(["train", *TINY, "--sigma", "0.5", "--models", root, "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out[0]["task"] == "classify" and 0 <= out[0]["test_accuracy_clean"] <= 1
+    assert cli.main(["train", *TINY, "--task", "regress", "--sigma", "0.5", "--models",
+                     root]) == 0
+    classifier = load_model("rtk-like", "classify", 0.5, root)
+    regressor = load_model("rtk-like", "regress", 0.5, root)
+    cmd = classifier.meta["provenance"]["command"]
+    assert cmd.startswith("drake-cert train --preset rtk-like --task classify --sigma 0.5")
+    assert classifier.meta["sigma"] == 0.5 and classifier.meta["provenance"]["seed"] == 0
+    assert regressor(torch.rand(2, 3, 64, 64)).shape == (2,)
+    manifest = yaml.safe_load((tmp_path / "MANIFEST.yaml").read_text())
+    assert set(manifest["models"]) == {"rtk-like/classify_sigma0.5.pt",
+                                       "rtk-like/regress_sigma0.5.pt"}
+    assert not list(tmp_path.rglob("*.ckpt"))  # the checkpoint is removed when done
+    before = model_path("rtk-like", "classify", 0.5, root).stat().st_mtime_ns
+    capsys.readouterr()
+    assert cli.main(["train", *TINY, "--sigma", "0.5", "--models", root]) == 0
+    assert "exists; skipping" in capsys.readouterr().err
+    assert model_path("rtk-like", "classify", 0.5, root).stat().st_mtime_ns == before
+
+
+def test_generate_writes_a_sample_grid_and_class_folders(capsys, tmp_path):
+    out = tmp_path / "grid.png"
+    assert cli.main(["generate", "--preset", "rtk-like", "--out", str(out), "--per-class", "2",
+                     "--export", str(tmp_path / "frames"), "--frames-per-class", "2"]) == 0
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert len(list((tmp_path / "frames").rglob("*.png"))) == 6
+    assert (tmp_path / "frames" / "stiffness.csv").read_text().count("\n") == 7
+    capsys.readouterr()
+    _one_error_line(capsys, ["generate", "--preset", "rtk-like"], "nothing to do")
