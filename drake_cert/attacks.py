@@ -3,9 +3,11 @@
 Both attacks live in [0, 1] pixel space, where the smoothing noise is added and budgets are
 measured: ``||x_adv - x||_2 <= eps`` and ``0 <= x_adv <= 1``.
 
-- Stability attack (SA): raise the predicted stiffness. Classifier: targeted towards the
-  grippiest label (index 0; presets list labels grippiest first). Regressor: push the output up.
-- Efficiency attack (EA): lower it. Classifier: towards the least grippy label (index K - 1).
+- Stability attack (SA): raise the predicted stiffness. Classifier: maximise the probability
+  of the labels grippier than the frame's clean prediction a (labels 0..a-1; presets list
+  labels grippiest first), i.e. push towards the grippiest label; a frame already predicted
+  grippiest is pushed to stay there. Regressor: push the output up.
+- Efficiency attack (EA): lower it. Classifier: the labels less grippy than a (a+1..K-1).
   Regressor: push the output down.
 
 Against the base model f (``sigma = 0``) the attack follows f's gradient. Against the smoothed
@@ -108,18 +110,35 @@ def _noisy_copies(x: torch.Tensor, sigma: float, draws: int,
     return (x.unsqueeze(0) + noise).flatten(0, 1)
 
 
-def classifier_objective(model: torch.nn.Module, target: int, sigma: float,
+def classifier_objective(model: torch.nn.Module, targets: torch.Tensor, sigma: float,
                          noise_draws: int) -> Callable:
-    """log P(target): of f's softmax (sigma = 0) or of the softmax averaged over noise draws."""
+    """log P(label in targets) per frame: of f's softmax (sigma = 0) or of the softmax averaged
+    over noise draws (SmoothAdv). ``targets`` is a [B, K] 0/1 mask of the wanted labels."""
 
     def objective(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
         if sigma == 0:
-            return torch.log_softmax(model(x), dim=1)[:, target]
-        probs = torch.softmax(model(_noisy_copies(x, sigma, noise_draws, gen)), dim=1)
-        mean = probs.view(noise_draws, x.shape[0], -1).mean(dim=0)
-        return torch.log(mean[:, target].clamp_min(1e-12))
+            probs = torch.softmax(model(x), dim=1)
+        else:
+            probs = torch.softmax(model(_noisy_copies(x, sigma, noise_draws, gen)), dim=1)
+            probs = probs.view(noise_draws, x.shape[0], -1).mean(dim=0)
+        return torch.log((probs * targets).sum(dim=1).clamp_min(1e-12))
 
     return objective
+
+
+def target_labels(predicted: torch.Tensor, num_classes: int, kind: str) -> torch.Tensor:
+    """[B, K] mask of the labels an attack pushes towards, from the clean prediction a.
+
+    SA: labels 0..a-1 (grippier; {0} when a = 0); EA: a+1..K-1 (less grippy; {K-1} when
+    a = K-1).
+    """
+    labels = torch.arange(num_classes, device=predicted.device).view(1, -1)
+    a = predicted.view(-1, 1)
+    if kind == "sa":
+        mask = (labels < a) | ((a == 0) & (labels == 0))
+    else:
+        mask = (labels > a) | ((a == num_classes - 1) & (labels == num_classes - 1))
+    return mask.to(torch.float32)
 
 
 def regressor_objective(model: torch.nn.Module, direction: float, sigma: float,
@@ -139,7 +158,8 @@ def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: At
            task: str, sigma: float = 0.0) -> torch.Tensor:
     """Stability (``kind="sa"``) or efficiency (``"ea"``) attack on a batch [B, C, H, W].
 
-    ``task`` is "classify" (model returns [B, K] logits, labels grippiest first) or "regress"
+    ``task`` is "classify" (model returns [B, K] logits, labels grippiest first; the targets
+    are set from the model's clean prediction, see :func:`target_labels`) or "regress"
     (model returns stiffness [B] or [B, 1]). ``sigma > 0`` attacks the smoothed model by the
     expectation over ``settings.noise_draws`` noise draws per step; ``sigma = 0`` the base
     model. Returns adversarial frames in [0, 1] within L2 distance eps of the input frames.
@@ -154,10 +174,10 @@ def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: At
     model.eval()
     try:
         if task == "classify":
-            with torch.no_grad():
-                num_classes = model(frames[:1]).shape[1]
-            target = 0 if kind == "sa" else num_classes - 1
-            objective = classifier_objective(model, target, sigma, settings.noise_draws)
+            predicted = _clean_prediction(model, frames, sigma, settings)
+            num_classes = predicted.shape[1]
+            targets = target_labels(predicted.argmax(1), num_classes, kind)
+            objective = classifier_objective(model, targets, sigma, settings.noise_draws)
         elif task == "regress":
             direction = 1.0 if kind == "sa" else -1.0
             objective = regressor_objective(model, direction, sigma, settings.noise_draws)
@@ -168,13 +188,25 @@ def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: At
         model.train(was_training)
 
 
+def _clean_prediction(model: torch.nn.Module, frames: torch.Tensor, sigma: float,
+                      settings: AttackSettings) -> torch.Tensor:
+    """Softmax of f at the frames, or its average over noise draws (sigma > 0), [B, K]."""
+    with torch.no_grad():
+        if sigma == 0:
+            return torch.softmax(model(frames), dim=1)
+        gen = torch.Generator(device=frames.device).manual_seed(int(settings.seed) + 1)
+        probs = torch.softmax(model(_noisy_copies(frames, sigma, settings.noise_draws, gen)),
+                              dim=1)
+        return probs.view(settings.noise_draws, frames.shape[0], -1).mean(dim=0)
+
+
 def stability_attack(model: torch.nn.Module, frames: torch.Tensor, settings: AttackSettings, *,
                      task: str, sigma: float = 0.0) -> torch.Tensor:
-    """SA: raise the predicted stiffness (towards the grippiest label). See :func:`attack`."""
+    """SA: raise the predicted stiffness (towards grippier labels). See :func:`attack`."""
     return attack(model, frames, "sa", settings, task=task, sigma=sigma)
 
 
 def efficiency_attack(model: torch.nn.Module, frames: torch.Tensor, settings: AttackSettings, *,
                       task: str, sigma: float = 0.0) -> torch.Tensor:
-    """EA: lower the predicted stiffness (towards the least grippy label). See :func:`attack`."""
+    """EA: lower the predicted stiffness (towards less grippy labels). See :func:`attack`."""
     return attack(model, frames, "ea", settings, task=task, sigma=sigma)

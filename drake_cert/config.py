@@ -167,7 +167,7 @@ class ControllerSettings:
     adaptation_law: str = "piecewise_constant"  # "piecewise_constant" or "gradient"
     adaptation_gain: float = 1.0e4  # Gamma of the gradient law (1/s)
     q_ad_diag: list[float] = dataclasses.field(default_factory=lambda: [10.0, 1.0, 10.0, 1.0])
-    sample_period_s: float = 1.0e-4  # T_s of the piecewise-constant law
+    sample_period_s: float = 1.0e-3  # T_s of the piecewise-constant law
     projection_epsilon: float = 0.1  # epsilon of the projection operator's convex function
     bound_factor: float = 1.1  # parameter sets are this factor times the largest value
 

@@ -9,13 +9,19 @@ Splits (DESIGN section 3). ``train`` has the preset's ``frames_per_class`` frame
 (carla-like 4000, rtk-like 400, robotcar-like 2000); ``calibration`` and ``test`` each have
 20 % of that (at least 10 per class). The three splits are rendered from independent random
 streams derived from ``(seed, split, label)`` (numpy ``SeedSequence``), so they are disjoint
-and each is reproducible on its own. Generated splits are kept in a small in-memory cache.
+and each is reproducible on its own. Generated splits are kept in a small in-memory cache and
+on disk (8-bit ``.npz``) under ``$DRAKE_CERT_DATA_CACHE`` (default: ``data_cache/`` of the
+source checkout, git-ignored; an empty value disables it); a file's name carries a hash of
+the generator's source, so a changed generator never reads stale frames.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import hashlib
+import io as _io
 import math
+import os
 from collections import OrderedDict
 from pathlib import Path
 
@@ -118,7 +124,10 @@ def load_split(preset: str, split: str, *, seed: int = 0, size: int = 64,
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    frames = generate_frames(table, preset, seed=sseed, frames_per_class=count, size=size)
+    frames = _read_disk_cache(key)
+    if frames is None:
+        frames = generate_frames(table, preset, seed=sseed, frames_per_class=count, size=size)
+        _write_disk_cache(key, frames)
     _CACHE[key] = frames
     while len(_CACHE) > _CACHE_ENTRIES:
         _CACHE.popitem(last=False)
@@ -126,8 +135,56 @@ def load_split(preset: str, split: str, *, seed: int = 0, size: int = 64,
 
 
 def clear_cache() -> None:
-    """Forget every cached split (frees memory)."""
+    """Forget every split cached in memory (the disk cache stays)."""
     _CACHE.clear()
+
+
+def disk_cache_dir() -> Path | None:
+    """``$DRAKE_CERT_DATA_CACHE``, else ``data_cache/`` of a source checkout, else None."""
+    env = os.environ.get("DRAKE_CERT_DATA_CACHE")
+    if env is not None:
+        return Path(env) if env else None
+    repo = Path(__file__).resolve().parents[1]
+    return repo / "data_cache" if (repo / ".git").exists() else None
+
+
+def _disk_cache_file(key: tuple) -> Path | None:
+    folder = disk_cache_dir()
+    if folder is None:
+        return None
+    source = (Path(__file__).parent / "frames.py").read_bytes()
+    digest = hashlib.sha256(source + repr(key).encode()).hexdigest()[:20]
+    return folder / f"{key[0]}_{key[1]}_{digest}.npz"
+
+
+def _read_disk_cache(key: tuple) -> FrameSet | None:
+    path = _disk_cache_file(key)
+    if path is None or not path.exists():
+        return None
+    try:
+        with np.load(path) as z:
+            images = torch.from_numpy(z["images"]).float().div_(255.0)
+            return FrameSet(images, torch.from_numpy(z["labels"]),
+                            torch.from_numpy(z["stiffness"]), [str(n) for n in z["label_names"]],
+                            str(z["preset"]))
+    except (OSError, KeyError, ValueError):
+        return None  # unreadable cache file: regenerate (and overwrite it)
+
+
+def _write_disk_cache(key: tuple, frames: FrameSet) -> None:
+    from drake_cert.io import atomic_write_bytes
+
+    path = _disk_cache_file(key)
+    if path is None:
+        return
+    buf = _io.BytesIO()
+    np.savez(buf, images=(frames.images * 255.0).round().to(torch.uint8).numpy(),
+             labels=frames.labels.numpy(), stiffness=frames.stiffness_n_per_rad.numpy(),
+             label_names=np.array(frames.label_names), preset=np.array(frames.preset))
+    try:
+        atomic_write_bytes(path, buf.getvalue())
+    except OSError:
+        pass  # a read-only checkout: no disk cache
 
 
 def load_image_folder(path: str | Path, *, preset: str | None = None, size: int = 64,

@@ -38,10 +38,11 @@ def gradient_law_system(p: L1Parameters) -> SymbolicVectorSystem:
     s = sym.MakeVectorVariable(4, "s")
     kappa = sym.Variable("kappa")
     _, _, _, _, u_ad = l1_law.unpack_gradient_state(z)
-    return SymbolicVectorSystem(
-        state=z, input=np.concatenate([s, [kappa]]),
-        dynamics=l1_law.gradient_controller_derivatives(p, z, s, kappa),
-        output=[l1_law.steering_command(p, s, u_ad, kappa)])
+    with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
+        dynamics = l1_law.gradient_controller_derivatives(p, z, s, kappa)
+        output = [l1_law.steering_command(p, s, u_ad, kappa)]
+    return SymbolicVectorSystem(state=z, input=np.concatenate([s, [kappa]]), dynamics=dynamics,
+                                output=output)
 
 
 def piecewise_constant_system(p: L1Parameters) -> AffineSystem:
@@ -49,10 +50,12 @@ def piecewise_constant_system(p: L1Parameters) -> AffineSystem:
     z = sym.MakeVectorVariable(5, "z")
     s = sym.MakeVectorVariable(4, "s")
     kappa = sym.Variable("kappa")
-    s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, z[:4], z[4], s, kappa)
+    with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
+        s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, z[:4], z[4], s, kappa)
+        command = l1_law.steering_command(p, s, z[4], kappa)
     zu = np.concatenate([z, s, [kappa]])
     m, f0 = _affine_matrices(np.concatenate([s_hat_next, [u_ad_next]]), zu)
-    c, y0 = _affine_matrices([l1_law.steering_command(p, s, z[4], kappa)], zu)
+    c, y0 = _affine_matrices([command], zu)
     return AffineSystem(A=m[:, :5], B=m[:, 5:], f0=f0, C=c[:, :5], D=c[:, 5:], y0=y0,
                         time_period=p.sample_period_s)
 

@@ -92,7 +92,10 @@ def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, fri
 
 
 def road_yaw_rate(x, speed, curvature):
-    """Heading rate of the road at the car's projection, ``kappa (V cos e2 - vy sin e2)/(1 - kappa e1)``."""
+    """Heading rate of the road at the car's projection (rad/s).
+
+    ``kappa (V cos e2 - vy sin e2) / (1 - kappa e1)``: the projection's arc-length rate times kappa.
+    """
     e1, vy, e2, _ = x
     return curvature * (speed * gm.cos(e2) - vy * gm.sin(e2)) / (1.0 - curvature * e1)
 
@@ -180,9 +183,10 @@ class NonlinearLateralPlant(_NamedInputPlant):
         x = sym.MakeVectorVariable(4, "x")
         u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
         builder = DiagramBuilder()
+        with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
+            x_dot = single_track_derivatives(vehicle, x, u, c, mu, v, kappa)
         dynamics = builder.AddNamedSystem("single_track", SymbolicVectorSystem(
-            state=x, input=[u, c, mu, v, kappa],
-            dynamics=single_track_derivatives(vehicle, x, u, c, mu, v, kappa), output=x))
+            state=x, input=[u, c, mu, v, kappa], dynamics=x_dot, output=x))
         xin = sym.MakeVectorVariable(4, "x_in")
         v_in, kappa_in = sym.Variable("speed"), sym.Variable("curvature")
         # Drake 1.51's SymbolicVectorSystem requires a state when it sits in a continuous

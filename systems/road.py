@@ -48,6 +48,15 @@ class Road:
         d = c + transition_m
         return Road((0.0, a, b, c, d), (0.0, 0.0, kappa, kappa, 0.0))
 
+    @staticmethod
+    def episode_curve(*, radius_m: float, length_m: float, left: bool = True) -> "Road":
+        """A curve placed in an episode of ``length_m`` (m): 10% straight, 10% clothoid in,
+        50% arc of ``radius_m``, 10% clothoid out, straight to the end."""
+        if not length_m > 0:
+            raise ConfigError(f"road: length_m = {length_m!r} must be positive")
+        return Road.curve(radius_m=radius_m, straight_m=0.1 * length_m,
+                          transition_m=0.1 * length_m, curve_m=0.5 * length_m, left=left)
+
     def curvature_at(self, arc_length_m) -> np.ndarray:
         """Curvature (1/m) at the given arc lengths (m)."""
         return np.interp(arc_length_m, self.knots_m, self.curvature_per_m)

@@ -137,20 +137,21 @@ def test_attacks_are_deterministic_by_seed(classifier, test_frames):
 
 def test_stability_attack_raises_and_efficiency_attack_lowers_the_prediction(
         classifier, regressor, test_frames):
-    images, labels, _ = test_frames
+    images = test_frames[0]
     settings = AttackSettings(eps=8.0, steps=30)
     with torch.no_grad():
         sa = classifier(stability_attack(classifier, images, settings, task="classify")).argmax(1)
         ea = classifier(efficiency_attack(classifier, images, settings, task="classify")).argmax(1)
-        assert (sa == 0).float().mean() >= 0.75  # towards the grippiest label
-        assert (ea == 2).float().mean() >= 0.75  # towards the least grippy label
-        assert (classifier(images).argmax(1) == labels).float().mean() >= 0.9
-        clean = regressor(images)
+        clean = classifier(images).argmax(1)
+        assert bool((sa <= clean).all()) and bool((ea >= clean).all())
+        assert (sa[clean > 0] < clean[clean > 0]).float().mean() >= 0.9  # grippier
+        assert (ea[clean < 2] > clean[clean < 2]).float().mean() >= 0.9  # less grippy
+        clean_y = regressor(images)
         up = regressor(stability_attack(regressor, images, AttackSettings(eps=1.0, steps=10),
                                         task="regress"))
         down = regressor(efficiency_attack(regressor, images, AttackSettings(eps=1.0, steps=10),
                                            task="regress"))
-    assert bool((up > clean).all()) and bool((down < clean).all())
+    assert bool((up > clean_y).all()) and bool((down < clean_y).all())
 
 
 def test_smoothed_attack_raises_the_smoothed_median(regressor, test_frames):

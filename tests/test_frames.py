@@ -152,3 +152,19 @@ def test_image_folder_rejects_unknown_labels(tmp_path):
         load_image_folder(tmp_path, preset="carla-like")
     with pytest.raises(ConfigError, match="does not exist"):
         load_image_folder(tmp_path / "missing")
+
+
+def test_disk_cache_returns_the_generated_bytes(tmp_path, monkeypatch):
+    from drake_cert.datasets import clear_cache
+    monkeypatch.setenv("DRAKE_CERT_DATA_CACHE", str(tmp_path))
+    clear_cache()
+    fresh = load_split("carla-like", "calibration", seed=5, frames_per_class=4, size=32)
+    assert len(list(tmp_path.glob("carla-like_calibration_*.npz"))) == 1
+    clear_cache()
+    cached = load_split("carla-like", "calibration", seed=5, frames_per_class=4, size=32)
+    assert cached is not fresh
+    assert cached.images.numpy().tobytes() == fresh.images.numpy().tobytes()
+    assert torch.equal(cached.labels, fresh.labels)
+    assert torch.equal(cached.stiffness_n_per_rad, fresh.stiffness_n_per_rad)
+    assert cached.label_names == fresh.label_names and cached.preset == "carla-like"
+    clear_cache()

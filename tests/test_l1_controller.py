@@ -5,6 +5,7 @@ import dataclasses
 import numpy as np
 import pytest
 from design_fixtures import lqr_design
+from pydrake.systems.analysis import SimulatorConfig
 
 from drake_cert import metrics
 from drake_cert.config import load_conditions, load_settings, load_vehicle
@@ -72,6 +73,22 @@ def test_piecewise_constant_system_evaluates_the_reference_update():
     assert u == pytest.approx(l1_law.steering_command(p, s, z[4], kappa), rel=1e-13)
 
 
+@pytest.mark.parametrize("law", l1_law.LAWS)
+def test_cpp_controller_matches_the_python_reference_leaf_system(law):
+    road = Road.curve(radius_m=50.0, straight_m=5.0, transition_m=10.0, curve_m=30.0)
+    kw = dict(vehicle=CAR, design=DESIGN, settings=SETTINGS, stiffness_n_per_rad=42_000.0,
+              friction_mu=0.6, speed_mps=SPEED, road=road, plant="nonlinear", law=law,
+              t_final_s=3.0, initial_state=[0.2, 0.0, 0.01, 0.0])
+    if law == "gradient":  # same fixed steps for both, so that only the evaluation differs
+        kw["config"] = SimulatorConfig(integration_scheme="runge_kutta2", max_step_size=2e-4,
+                                       use_error_control=False, publish_every_time_step=False)
+    fast = simulate(**kw)
+    reference = simulate(reference_controller=True, **kw)
+    assert metrics.peak_lateral_offset(fast) > 0.05
+    np.testing.assert_allclose(fast.states, reference.states, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(fast.steering_rad, reference.steering_rad, rtol=0, atol=1e-11)
+
+
 def test_piecewise_constant_estimate_cancels_the_prediction_error_in_one_period():
     # If the plant follows the nominal model exactly, the estimate computed from any
     # prediction error makes the predictor meet the plant at the next sample.
@@ -118,6 +135,22 @@ def test_sampled_and_continuous_linear_plants_agree():
     peak = metrics.peak_lateral_offset(continuous)
     assert peak > 1e-3
     np.testing.assert_allclose(sampled.states[:, 0], continuous.states[:, 0], atol=0.02 * peak)
+
+
+def test_default_sample_period_is_converged():
+    # Halving T_s from the shipped default moves the peak offset by well under 1 %
+    # (benchmarks/bench_sample_period.py prints the full halving sequence).
+    road = Road.curve(radius_m=50.0, straight_m=10.0, curve_m=40.0)
+    peaks = []
+    for factor in (1.0, 0.5):
+        ctl = dataclasses.replace(SETTINGS.controller,
+                                  sample_period_s=SETTINGS.controller.sample_period_s * factor)
+        tape = simulate(vehicle=CAR, design=DESIGN,
+                        settings=dataclasses.replace(SETTINGS, controller=ctl),
+                        stiffness_n_per_rad=40_000.0, friction_mu=0.9, speed_mps=SPEED,
+                        road=road, plant="linear_sampled", t_final_s=8.0)
+        peaks.append(metrics.peak_lateral_offset(tape))
+    assert abs(peaks[0] - peaks[1]) < 0.01 * peaks[1]
 
 
 def test_both_laws_keep_the_linear_car_in_its_lane_on_a_curve():

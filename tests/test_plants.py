@@ -1,7 +1,6 @@
 """The plants: eq. 2.45 in Drake, the Fiala single track reduces to it, exact simulation."""
 
 import numpy as np
-import pydrake.symbolic as sym
 import pytest
 import scipy.linalg
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig

@@ -387,3 +387,20 @@ def test_compiled_model_certifies_like_the_eager_model():
     assert compiled.compile_seconds > 0
     # Same noise; folding batch norm changes rounding, so a rare sample may flip.
     assert np.abs(counts - eager).sum() <= 10
+
+
+def test_failed_compilation_falls_back_to_eager_with_a_warning(monkeypatch):
+    def broken_compile(model, **kwargs):  # what a machine without a C++ compiler does
+        def run(x):
+            raise RuntimeError("InvalidCxxCompiler: no working C++ compiler found")
+        return run
+
+    monkeypatch.setattr(torch, "compile", broken_compile)
+    w, x = torch.ones(16), torch.full(SHAPE, 0.5)
+    model = ProjectionThresholds(w, -4.0, (0.0,))
+    smooth = SmoothedClassifier(model, 2, 0.5, compile=True)
+    with pytest.warns(RuntimeWarning, match="running the model eagerly"):
+        counts = smooth.sample_counts(x, 300, 100, torch.Generator().manual_seed(0))
+    eager = SmoothedClassifier(model, 2, 0.5).sample_counts(x, 300, 100,
+                                                           torch.Generator().manual_seed(0))
+    assert np.array_equal(counts, eager) and smooth.compile_seconds == 0.0

@@ -54,7 +54,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="noise, attack and frame choice")
     parser.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     parser.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
-                        help="torch.compile the model (auto: when the run draws >= 300k samples)")
+                        help="torch.compile the model (auto: when the run draws >= 50k samples)")
     parser.add_argument("--attack-steps", type=_positive_int, default=20)
     parser.add_argument("--calibration-per-class", type=_positive_int, default=100,
                         help="regression: calibration frames per label for the conformal beta")
