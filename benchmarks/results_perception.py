@@ -32,7 +32,12 @@ from drake_cert.datasets import load_split
 from drake_cert.errors import ModelNotFoundError
 from drake_cert.io import atomic_write_text, provenance
 from drake_cert.models import load_model, sigma_tag
-from drake_cert.perception_eval import CertifySettings, certify_classifier, select_frames
+from drake_cert.perception_eval import (
+    CertifySettings,
+    certify_classifier,
+    select_frames,
+    summarize_classification,
+)
 
 PRESETS = ("carla-like", "rtk-like", "robotcar-like")
 SIGMAS = (0.0, 0.25, 0.5, 1.0)
@@ -77,8 +82,14 @@ def _progress(desc):
     return lambda it: tqdm(it, desc=desc, file=sys.stderr, leave=False)
 
 
-def _fmt(value) -> str:
-    return "-" if value is None else f"{value:.2f}"
+def _fmt(value, digits: int = 2) -> str:
+    return "-" if value is None else f"{value:.{digits}f}"
+
+
+def _settings(summary: dict) -> CertifySettings:
+    """The settings a stored summary was made with (for recomputing its metrics)."""
+    keys = ("preset", "sigma", "task", "attack", "eps", "n0", "n", "alpha", "frames")
+    return CertifySettings(**{k: summary[k] for k in keys})
 
 
 def render(cells: dict, args: argparse.Namespace) -> str:
@@ -95,15 +106,16 @@ def render(cells: dict, args: argparse.Namespace) -> str:
         f"{args.attack_steps} steps), with budget eps = {args.interval_eps}.",
         "",
         "| preset | sigma | frames | clean acc. | acc. under PGD (SA / EA / either) | "
-        "mean R_S(a) | mean R_{a} | abstain | interval width (kN/rad) | coverage "
-        "(all / clean g right) | envelope rate |",
+        "mean R_S(a) (share S(a) = all) | mean R_{a} | abstain | interval width (kN/rad) | "
+        "coverage (all / clean g right) | envelope rate |",
         "|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for preset in args.presets:
         for sigma in SIGMAS:
             cell = cells.get((preset, sigma))
             if cell is None:
-                lines.append(f"| {preset} | {sigma:g} | - | model missing | | | | | | | |")
+                lines.append(f"| {preset} | {sigma:g} | - | not run (no model yet) "
+                             "| | | | | | | |")
                 continue
             if sigma == 0:
                 sa, ea = cell["sa"], cell["ea"]
@@ -113,15 +125,20 @@ def render(cells: dict, args: argparse.Namespace) -> str:
                     f"{cell['either_accuracy']:.2f} (eps {args.attack_eps}) | - | - | - | - | - "
                     "| - |")
             else:
-                s = cell["sa"]
+                s = summarize_classification(cell["sa_records"], _settings(cell["sa"]))
                 lines.append(
                     f"| {preset} | {sigma:g} | {cell['frames']} | {s['clean_accuracy']:.2f} | "
                     f"{s['accuracy']:.2f} (SA on g, eps {args.interval_eps}) | "
-                    f"{s['mean_radius']:.3f} | {s['mean_radius_label']:.3f} | "
+                    f"{_fmt(s['mean_radius'], 3)} ({s['unbounded_radius_rate']:.2f}) | "
+                    f"{s['mean_radius_label']:.3f} | "
                     f"{s['clean_abstain_rate']:.2f} | {s['interval_width_mean'] / 1e3:.1f} | "
                     f"{s['interval_coverage']:.2f} / {_fmt(s['coverage_given_clean_right'])} | "
                     f"{s['envelope_rate']:.2f} |")
-    lines += ["", "Interval: the narrowest contiguous label range with certified radius "
+    lines += ["", "R_S(a): certified radius of the safe set of the predicted label a (paper "
+              "Prop. 1, made sound); when S(a) holds every label (a is the grippiest label) it "
+              "is infinite, so the mean is over the other frames and the share of infinite ones "
+              "is given in brackets. R_{a}: Cohen's radius of the label alone (joint bounds).",
+              "", "Interval: the narrowest contiguous label range with certified radius "
               "> eps at the observed frame (DESIGN 3); envelope when none qualifies. Coverage: "
               "share of frames whose true stiffness lies in it."]
     return "\n".join(lines) + "\n"

@@ -55,6 +55,7 @@ class ConditionStyle:
     rain_density: tuple[float, float] = (0.0, 0.0)  # streak starts per pixel
     streak_length_px: tuple[float, float] = (4.0, 6.0)
     snow_cover: tuple[float, float] = (0.0, 0.0)  # share of the road under snow
+    verge_snow: tuple[float, float] = (0.9, 0.9)  # snow on the verge (when snow_cover > 0)
     flake_density: tuple[float, float] = (0.0, 0.0)  # flakes per pixel
     fog: tuple[float, float] = (0.0, 0.05)  # extinction per unit depth (x 0.1)
     overcast: tuple[float, float] = (0.0, 0.3)  # sky: 0 clear blue, 1 flat grey
@@ -332,7 +333,8 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
         amount = ((drift * 0.5 + 2 * cover[:, None, None] - 1) * 2.5).clamp(0.0, 1.0)
         amount = amount * (1 - 0.85 * tracks)
         road = _mix(road, snow_col * (1 + 0.04 * fine[:, None]), amount[:, None])
-        verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]), 0.9)
+        verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
+                     _col(lerp(style.verge_snow, s)))
         tree_col = _mix(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
 
     img = _mix(verge, road, on_road[:, None])

@@ -181,8 +181,9 @@ def summarize_classification(records: list[dict], settings: CertifySettings) -> 
     accuracy: prediction at the observed (attacked, if any) frame equals the true label
     (abstain counts as wrong); clean_accuracy: the same at the clean frame; abstain_rate,
     clean_abstain_rate: share of abstentions at the observed / clean frame; mean_radius:
-    mean R_{S(a)} at the clean frame (abstain = 0); mean_radius_label: the same for the
-    single label {a};
+    mean R_{S(a)} at the clean frame (abstain = 0) over the frames whose S(a) leaves some label
+    out (when S(a) holds every label, e.g. the grippiest one, R is infinite: their share is
+    unbounded_radius_rate); mean_radius_label: mean R_{a} for the single label {a};
     interval_width_mean, interval_coverage: run-time interval at budget eps at the observed
     frame, its mean width and the share holding the true stiffness; coverage_given_clean_right:
     that share among frames whose clean smoothed prediction is right; envelope_rate: share of
@@ -202,7 +203,9 @@ def summarize_classification(records: list[dict], settings: CertifySettings) -> 
     out.update({
         "abstain_rate": float(np.mean(pred == -1)),
         "clean_abstain_rate": float(np.mean(clean == -1)),
-        "mean_radius": float(np.mean([r["clean_radius"] for r in records])),
+        "mean_radius": _mean_finite([r["clean_radius"] for r in records]),
+        "unbounded_radius_rate": float(np.mean([math.isinf(r["clean_radius"])
+                                                for r in records])),
         "mean_radius_label": float(np.mean([r["clean_radius_label"] for r in records])),
         "interval_width_mean": float(np.mean([r["interval_n_per_rad"][1] -
                                               r["interval_n_per_rad"][0] for r in records])),
@@ -211,6 +214,22 @@ def summarize_classification(records: list[dict], settings: CertifySettings) -> 
         "envelope_rate": float(np.mean([not r["interval_certified"] for r in records])),
     })
     return out
+
+
+def _mean_finite(values: list[float]) -> float | None:
+    finite = [v for v in values if math.isfinite(v)]
+    return float(np.mean(finite)) if finite else None
+
+
+def json_safe(value):
+    """``value`` with infinities replaced by None (strict JSON has no infinity)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
 
 
 def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,

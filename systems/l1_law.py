@@ -12,7 +12,13 @@ C++-evaluated systems of :mod:`systems.l1_controller`. Symbols follow the paper:
 Two adaptation laws: the continuous gradient law with Gamma and the projection operator
 (:func:`gradient_law`), and the piecewise-constant law sampled at T_s
 (:func:`piecewise_constant_update`), whose 4-vector estimate covers matched and unmatched
-directions.
+directions; the filter receives its input-channel equivalent at DC
+(:func:`compensated_estimate`), which keeps the steady-state e1 at zero for any stiffness.
+
+Numerics: along the gradient law the projection keeps each estimate in its set only in
+continuous time; at the set's boundary its restoring rate grows like Gamma |y| f, so
+explicit fixed-step integration diverges there (seen with RK2 at 5 us); the simulator uses
+an implicit, error-controlled integrator (``systems.closed_loop.simulator_config``).
 """
 
 import dataclasses

@@ -20,6 +20,7 @@ discretisation of eq. 2.45 at a sample period, for fixed (C, V).
 import numpy as np
 import pydrake.symbolic as sym
 import scipy.linalg
+from pydrake.systems.analysis import DiscreteTimeApproximation
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
 
@@ -48,18 +49,25 @@ def static_tire_loads(vehicle: VehicleParams) -> tuple[float, float]:
 
 
 def fiala_lateral_force(slip_angle, stiffness, friction_mu, normal_load):
-    """Fiala brush-tire lateral force of one tire (N) at slip angle a (rad).
+    """Fiala brush-tire lateral force of one tire (N) at slip angle a (rad, |a| < pi/2).
 
     ``F = -C tan a + C^2/(3 mu Fz) |tan a| tan a - C^3/(27 mu^2 Fz^2) tan^3 a`` for
     ``|tan a| < 3 mu Fz / C``, else ``-mu Fz sign(a)`` (full sliding). Slope -C at a = 0;
     continuous and monotone, |F| <= mu Fz. Float or symbolic.
     """
-    t = gm.tan(slip_angle)
+    return fiala_force_from_tan(gm.tan(slip_angle), stiffness, friction_mu, normal_load)
+
+
+def fiala_force_from_tan(tan_slip, stiffness, friction_mu, normal_load):
+    """:func:`fiala_lateral_force` in terms of ``tan a`` (the kinematics give tan a directly).
+
+    With ``z = C tan a / (3 mu Fz)`` the brush model reads ``F = -mu Fz (3z - 3z|z| + z^3)``
+    for ``|z| < 1`` and ``-mu Fz sign(z)`` beyond (fewer operations in the C++ expression).
+    """
     mu_fz = friction_mu * normal_load
-    adhesion = (-stiffness * t + stiffness**2 / (3.0 * mu_fz) * gm.absolute(t) * t
-                - stiffness**3 / (27.0 * mu_fz**2) * t**3)
-    sliding = -mu_fz * gm.sign(slip_angle)
-    return gm.where(gm.absolute(t) < 3.0 * mu_fz / stiffness, adhesion, sliding)
+    z = stiffness * tan_slip / (3.0 * mu_fz)
+    adhesion = -mu_fz * z * (3.0 - 3.0 * gm.absolute(z) + z * z)
+    return gm.where(gm.absolute(z) < 1.0, adhesion, -mu_fz * gm.sign(z))
 
 
 def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, friction_mu,
@@ -77,10 +85,14 @@ def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, fri
     e1, vy, e2, r = x
     m, iz, lf, lr = vehicle.mass_kg, vehicle.yaw_inertia_kg_m2, vehicle.lf_m, vehicle.lr_m
     fz_f, fz_r = static_tire_loads(vehicle)
-    slip_f = gm.atan((vy + lf * r) / speed) - steering
-    slip_r = gm.atan((vy - lr * r) / speed)
-    f_f = 2.0 * fiala_lateral_force(slip_f, stiffness, friction_mu, fz_f)
-    f_r = 2.0 * fiala_lateral_force(slip_r, stiffness, friction_mu, fz_r)
+    # tan of the slip angles a_f = atan(q_f) - u and a_r = atan(q_r), without atan:
+    # tan(atan(q) - u) = (q - tan u) / (1 + q tan u).
+    q_f = (vy + lf * r) / speed
+    tan_u = gm.tan(steering)
+    tan_slip_f = (q_f - tan_u) / (1.0 + q_f * tan_u)
+    tan_slip_r = (vy - lr * r) / speed
+    f_f = 2.0 * fiala_force_from_tan(tan_slip_f, stiffness, friction_mu, fz_f)
+    f_r = 2.0 * fiala_force_from_tan(tan_slip_r, stiffness, friction_mu, fz_r)
     vy_dot = (f_f * gm.cos(steering) + f_r) / m - speed * r
     r_dot = (lf * f_f * gm.cos(steering) - lr * f_r) / iz
     return np.array([
@@ -217,7 +229,11 @@ class NonlinearLateralPlant(_NamedInputPlant):
 
 
 def exact_discretisation(vehicle: VehicleParams, stiffness, speed, period):
-    """ZOH discretisation of eq. 2.45: ``s[k+1] = Ad s[k] + Bd [u[k], kappa[k]]``, exact."""
+    """ZOH discretisation of eq. 2.45: ``s[k+1] = Ad s[k] + Bd [u[k], kappa[k]]``, exact.
+
+    From one matrix exponential of the augmented ``[[A, b, g V], [0, 0, 0]]`` (an
+    independent check of Drake's ``DiscreteTimeApproximation`` used by the plant below).
+    """
     a, b, g = lateral_error_dynamics(vehicle, float(stiffness), float(speed))
     m = np.zeros((6, 6))
     m[:4, :4] = a
@@ -228,7 +244,8 @@ def exact_discretisation(vehicle: VehicleParams, stiffness, speed, period):
 
 
 class ExactDiscreteLinearPlant(Diagram):
-    """Eq. 2.45 sampled with zero-order hold at ``period_s`` for fixed (C, V): exact.
+    """Eq. 2.45 sampled with zero-order hold at ``period_s`` for fixed (C, V): exact
+    (Drake's ``DiscreteTimeApproximation`` of the continuous affine system).
 
     Inputs ``steering_rad`` and ``curvature_per_m`` only (C and V are construction
     parameters of a constant-parameter episode); output ``state`` = s[k]. Steering and
@@ -238,11 +255,12 @@ class ExactDiscreteLinearPlant(Diagram):
     def __init__(self, vehicle: VehicleParams, stiffness_n_per_rad: float, speed_mps: float,
                  period_s: float):
         super().__init__()
-        ad, bd = exact_discretisation(vehicle, stiffness_n_per_rad, speed_mps, period_s)
+        a, b, g = lateral_error_dynamics(vehicle, float(stiffness_n_per_rad), float(speed_mps))
+        continuous = AffineSystem(A=a, B=np.column_stack([b, g * speed_mps]), f0=np.zeros(4),
+                                  C=np.eye(4), D=np.zeros((4, 2)), y0=np.zeros(4))
         builder = DiagramBuilder()
-        core = builder.AddNamedSystem("eq_2_45_zoh", AffineSystem(
-            A=ad, B=bd, f0=np.zeros(4), C=np.eye(4), D=np.zeros((4, 2)), y0=np.zeros(4),
-            time_period=period_s))
+        core = builder.AddNamedSystem("eq_2_45_zoh",
+                                      DiscreteTimeApproximation(continuous, period_s))
         mux = builder.AddSystem(Multiplexer([1, 1]))
         builder.Connect(mux.get_output_port(0), core.get_input_port(0))
         builder.ExportInput(mux.get_input_port(0), "steering_rad")

@@ -75,6 +75,15 @@ def test_fiala_tire_is_linear_for_small_slip_and_saturates_at_mu_fz():
     assert np.abs(forces).max() <= mu * fz * (1 + 1e-12)
 
 
+@pytest.mark.parametrize("slip", [-0.075, -0.02, 0.004, 0.03, 0.07])
+def test_fiala_tire_follows_the_brush_formula_below_sliding(slip):
+    c, mu, fz = 60_000.0, 0.5, static_tire_loads(CAR)[1]
+    t = np.tan(slip)
+    assert abs(t) < 3 * mu * fz / c  # still adhering
+    brush = (-c * t + c**2 / (3 * mu * fz) * abs(t) * t - c**3 / (27 * mu**2 * fz**2) * t**3)
+    assert fiala_lateral_force(slip, c, mu, fz) == pytest.approx(brush, rel=1e-12)
+
+
 def test_static_loads_add_up_to_the_weight():
     f, r = static_tire_loads(CAR)
     assert 2 * (f + r) == pytest.approx(CAR.mass_kg * 9.81)

@@ -83,7 +83,12 @@ def run(args: argparse.Namespace) -> int:
     from drake_cert.datasets import load_split
     from drake_cert.io import provenance
     from drake_cert.models import check_sigma, load_model
-    from drake_cert.perception_eval import certify_classifier, certify_regressor, select_frames
+    from drake_cert.perception_eval import (
+        certify_classifier,
+        certify_regressor,
+        json_safe,
+        select_frames,
+    )
     from drake_cert.smoothing import resolve_device
 
     settings = settings_from_args(args)
@@ -116,8 +121,9 @@ def run(args: argparse.Namespace) -> int:
         records, summary = certify_regressor(model, images, labels, stiffness, calibration,
                                              table.envelope(settings.preset), settings, progress)
     if args.json:
-        print(json.dumps({"summary": summary, "records": records,
-                          "provenance": provenance(settings.seed)}, indent=1))
+        print(json.dumps(json_safe({"summary": summary, "records": records,
+                                    "provenance": provenance(settings.seed)}), indent=1,
+                         allow_nan=False))
     else:
         print(format_summary(summary))
     return 0
@@ -134,8 +140,9 @@ def format_summary(s: dict) -> str:
         return (f"{head}, n0={s['n0']}, n={s['n']}, alpha={s['alpha']:g}\n"
                 f"accuracy {s['accuracy']:.3f} (clean {s['clean_accuracy']:.3f}), "
                 f"abstain rate {s['abstain_rate']:.3f}\n"
-                f"mean certified radius R_S(a) {s['mean_radius']:.3f} "
-                f"(single label: {s['mean_radius_label']:.3f}; abstain = 0)\n"
+                f"mean certified radius R_S(a) {_num(s['mean_radius'])} "
+                f"(S(a) = all labels, unbounded: {s['unbounded_radius_rate']:.3f}; "
+                f"single label: {s['mean_radius_label']:.3f}; abstain = 0)\n"
                 f"run-time interval at eps={s['eps']:g}: mean width "
                 f"{s['interval_width_mean']:,.0f} N/rad, coverage {s['interval_coverage']:.3f}"
                 f", envelope rate {s['envelope_rate']:.3f}")
@@ -145,7 +152,11 @@ def format_summary(s: dict) -> str:
                 f"(clean {s['clean_mae_n_per_rad']:,.0f})")
     return (f"{head}, n={s['n']}, alpha={s['alpha']:g}\n"
             f"median abs error {s['mae_n_per_rad']:,.0f} N/rad, conformal beta "
-            f"{s['beta_n_per_rad']:,.0f} N/rad\n"
+            f"{s['beta_n_per_rad']:,.0f} N/rad (inf: too few calibration frames)\n"
             f"run-time interval at eps={s['eps']:g}: mean width "
             f"{s['interval_width_mean']:,.0f} N/rad (raw {s['raw_width_mean']:,.0f}), "
             f"coverage {s['interval_coverage']:.3f}")
+
+
+def _num(value) -> str:
+    return "-" if value is None else f"{value:.3f}"
