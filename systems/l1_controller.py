@@ -11,7 +11,9 @@ The equations are those of :mod:`systems.l1_law`, instantiated symbolically once
 - ``law="piecewise_constant"``: the law is linear in (s_hat, u_ad, s, kappa), so the
   symbolic update is decomposed into the matrices of a discrete ``AffineSystem`` with
   period T_s (state s_hat, u_ad; the command feeds s and kappa through directly).
-The speed V is a construction parameter (constant-speed episodes).
+The speed V is a construction parameter (constant-speed episodes). A Python ``LeafSystem``
+running the same functions, :class:`systems.l1_reference.L1AdaptiveControllerReference`, is
+the readable reference; the tests check that both give the same closed loop.
 """
 
 import numpy as np
