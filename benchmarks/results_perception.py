@@ -31,7 +31,7 @@ from drake_cert.config import load_conditions
 from drake_cert.datasets import load_split
 from drake_cert.errors import ModelNotFoundError
 from drake_cert.io import atomic_write_text, provenance
-from drake_cert.models import load_model, sigma_tag
+from drake_cert.models import file_sha256, load_model, model_path, sigma_tag
 from drake_cert.perception_eval import (
     CertifySettings,
     certify_classifier,
@@ -55,7 +55,8 @@ def run_cell(preset: str, sigma: float, args: argparse.Namespace, table) -> dict
     base = CertifySettings(preset=preset, sigma=sigma, n0=args.n0, n=args.n, alpha=args.alpha,
                            frames=frames, batch_size=args.batch_size, seed=args.seed,
                            compile=args.compile, attack_steps=args.attack_steps)
-    cell = {"preset": preset, "sigma": sigma, "frames": frames}
+    cell = {"preset": preset, "sigma": sigma, "frames": frames,
+            "model_sha256": file_sha256(model_path(preset, "classify", sigma, args.models))}
     start = time.perf_counter()
     if sigma == 0:
         for kind in ("sa", "ea"):
