@@ -75,7 +75,8 @@ def main() -> None:
     eager.warmup(shape, args.batch_size)
     compile_s = compiled.warmup(shape, args.batch_size)
     print(f"one-time compilation (first compiled batch): {compile_s:.1f} s "
-          f"(compiled: {compiled.compile_seconds > 0})")
+          f"(compiled: {compiled.compile_seconds > 0}; a warm inductor cache shortens it, "
+          "TORCHINDUCTOR_CACHE_DIR=<new folder> gives the cold figure)")
     plain_certify(model, x, 10, args.batch_size, 0.001, args.batch_size, args.sigma, num_classes)
 
     methods = {

@@ -249,8 +249,9 @@ class _NoisySampler:
 
     One preallocated [batch_size, C, H, W] buffer per shape; noise is written into it in place
     (``normal_``), the frame is added in place, and the model runs under
-    ``torch.inference_mode``. Every batch has the same shape (the last one is padded and its
-    extra outputs dropped), so a compiled model is compiled once.
+    ``torch.inference_mode``. With a compiled model every batch has the same shape (the last
+    one is padded and its extra outputs dropped), so it is compiled once; an eager model runs
+    a short last batch unpadded.
     """
 
     def __init__(self, base: torch.nn.Module, sigma: float, device: str | torch.device,
@@ -305,9 +306,14 @@ class _NoisySampler:
         return self._buffer
 
     def outputs(self, x: torch.Tensor, num: int, batch_size: int,
-                generator: torch.Generator | None) -> Iterator[torch.Tensor]:
+                generator: torch.Generator | None,
+                selection: bool = False) -> Iterator[torch.Tensor]:
         """Yield the model's outputs on ``num`` noisy copies of ``x``, batch by batch.
 
+        ``selection``: the samples only choose a label (CERTIFY's n0), which no guarantee
+        depends on; a short batch then runs the eager model unpadded (cheaper than a padded
+        compiled batch when it is at most half full). Estimation samples always use one model
+        (the compiled one when compiled, padding the last batch).
         Must be consumed inside ``torch.inference_mode()`` (the callers do).
         """
         _check_count(num, "number of samples")
@@ -318,10 +324,14 @@ class _NoisySampler:
         remaining = num
         while remaining > 0:
             m = min(batch_size, remaining)
-            buf.normal_(0.0, self.sigma, generator=generator)
-            buf.add_(x)
+            # Short batches: an eager model runs them unpadded; a compiled one is padded (one
+            # shape, compiled once) except for selection samples (see above).
+            short = m < batch_size and (not self.compiled or (selection and 2 * m <= batch_size))
+            batch = buf[:m] if short else buf
+            batch.normal_(0.0, self.sigma, generator=generator)
+            batch.add_(x)
             try:
-                out = self._forward(buf)
+                out = self.base(batch) if short else self._forward(batch)
             except RuntimeError as e:
                 raise CertificationError(f"base model rejected a batch of frames of shape "
                                          f"{list(x.shape)}: {str(e).splitlines()[0]}") from None
@@ -416,12 +426,16 @@ class SmoothedClassifier:
         return self._sampler.warmup(frame_shape, batch_size)
 
     def sample_counts(self, x: torch.Tensor, num: int, batch_size: int,
-                      generator: torch.Generator | None = None) -> np.ndarray:
-        """How many of ``num`` noisy copies of ``x`` the base model gives each label, [K]."""
+                      generator: torch.Generator | None = None, *,
+                      selection: bool = False) -> np.ndarray:
+        """How many of ``num`` noisy copies of ``x`` the base model gives each label, [K].
+
+        ``selection=True`` marks samples that only choose a label (see ``_NoisySampler``).
+        """
         k = self.num_classes
         with torch.inference_mode():
             counts = torch.zeros(k, dtype=torch.int64, device=self.device)
-            for out in self._sampler.outputs(x, num, batch_size, generator):
+            for out in self._sampler.outputs(x, num, batch_size, generator, selection):
                 if out.dim() != 2 or out.shape[1] != k:
                     raise CertificationError(f"base model returned scores of shape "
                                              f"{list(out.shape)}; expected [batch, {k}]")
@@ -462,7 +476,7 @@ class SmoothedClassifier:
         _check_count(n, "n")
         self._check_enough_samples(n, alpha)
         gen = make_generator(seed, self.device)
-        top = int(np.argmax(self.sample_counts(x, n0, batch_size, gen)))
+        top = int(np.argmax(self.sample_counts(x, n0, batch_size, gen, selection=True)))
         counts = self.sample_counts(x, n, batch_size, gen)
         p_low, p_up = clopper_pearson_bounds(counts, alpha)
         members = (top,) if safe_set is None else self._members(safe_set, top)
