@@ -487,8 +487,13 @@ class SmoothedClassifier:
                                 p_up=p_up, sigma=self.sigma, alpha=float(alpha))
 
     def _members(self, safe_set: SafeSet, top: int) -> tuple[int, ...]:
-        chosen = safe_set(top) if callable(safe_set) else safe_set[top]
-        members = tuple(sorted(set(int(t) for t in chosen)))
+        try:
+            chosen = safe_set(top) if callable(safe_set) else safe_set[top]
+            members = tuple(sorted(set(int(t) for t in chosen)))
+        except (TypeError, KeyError, IndexError, ValueError):
+            raise CertificationError(
+                "safe_set must map each label index to the label indices of its safe set "
+                f"(a callable, a mapping or a sequence of sequences); got {safe_set!r}") from None
         if top not in members or not all(0 <= t < self.num_classes for t in members):
             raise CertificationError(f"safe set {list(members)} of label {top} must contain it "
                                      f"and lie within 0..{self.num_classes - 1}")

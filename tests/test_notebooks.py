@@ -17,3 +17,7 @@ def _execute(name: str) -> None:
 
 def test_closed_loop_notebook_runs():
     _execute("closed_loop.ipynb")
+
+
+def test_certified_perception_notebook_runs():
+    _execute("certified_perception.ipynb")
