@@ -179,7 +179,8 @@ class ControllerSettings:
         _require_positive(self.sample_period_s, "controller.sample_period_s", where)
         _require_positive(self.projection_epsilon, "controller.projection_epsilon", where)
         if self.bound_factor < 1.0:
-            raise ConfigError(f"{where}: controller.bound_factor = {self.bound_factor} must be >= 1")
+            raise ConfigError(
+                f"{where}: controller.bound_factor = {self.bound_factor} must be >= 1")
         if len(self.q_ad_diag) != 4 or min(self.q_ad_diag) <= 0:
             raise ConfigError(f"{where}: controller.q_ad_diag = {self.q_ad_diag} must be four "
                               "positive numbers")
@@ -271,7 +272,7 @@ def _join(path: str, key: str) -> str:
 
 
 def load_typed(schema: type, filename: str | Path):
-    """Load ``filename`` into ``schema`` strictly; raise :class:`ConfigError` naming key and file."""
+    """Load ``filename`` into ``schema`` strictly; :class:`ConfigError` names key and file."""
     where = str(filename)
     try:
         text = Path(filename).read_text()
