@@ -234,3 +234,26 @@ def test_bad_attack_inputs_are_rejected(classifier, test_frames):
         attack(classifier, images, "sa", AttackSettings(eps=-1.0), task="classify")
     with pytest.raises(CertificationError, match=r"\[B, C, H, W\]"):
         attack(classifier, images[0], "sa", AttackSettings(eps=1.0), task="classify")
+
+
+@pytest.mark.parametrize("preset", ["carla-like", "rtk-like", "robotcar-like"])
+def test_pgd_at_half_budget_breaks_the_shipped_nonrobust_classifier(preset):
+    """Paper Table 'Vulnerability': L2 PGD at eps = 0.5 takes f to <= 50% accuracy.
+
+    A frame counts as robust only if neither the stability nor the efficiency attack flips it.
+    """
+    from drake_cert.datasets import load_split
+    from drake_cert.models import load_model
+
+    frames = load_split(preset, "test", frames_per_class=10, seed=3)
+    f = load_model(preset, "classify", 0.0)
+    settings = AttackSettings(eps=0.5, steps=20, seed=0)
+    robust = torch.ones(len(frames.labels), dtype=torch.bool)
+    with torch.no_grad():
+        robust &= f(frames.images).argmax(1) == frames.labels
+    for kind in ("sa", "ea"):
+        adv = attack(f, frames.images, kind, settings, task="classify")
+        assert float((adv - frames.images).flatten(1).norm(dim=1).max()) <= 0.5 + 1e-4
+        with torch.no_grad():
+            robust &= f(adv).argmax(1) == frames.labels
+    assert float(robust.float().mean()) <= 0.5
