@@ -389,29 +389,11 @@ class ClassCertificate:
 SafeSet = Callable[[int], Iterable[int]] | Mapping[int, Iterable[int]] | Sequence[Iterable[int]]
 
 
-class SmoothedClassifier:
-    """The smoothed classifier ``g(x) = argmax_l P(f(x + N(0, sigma^2 I)) = l)`` (Cohen et al.).
+class _SmoothedModel:
+    """What both smoothed models share: the noisy sampler, its device, compilation and warm-up."""
 
-    Args:
-        base: torch module mapping [B, C, H, W] frames to [B, num_classes] scores (logits).
-            It is moved to ``device`` and put in eval mode.
-        num_classes: K, the number of labels.
-        sigma: noise level (standard deviation per pixel, [0, 1] pixel units), > 0.
-        device: "cpu" (default) or a CUDA device when asked for.
-        compile: compile the base model with ``torch.compile`` (inductor, weights frozen).
-            Default False: compiling takes ~20 s on 2 CPU cores and needs a C++ compiler, and
-            pays off only after ~10^5 samples (benchmarks/bench_smoothing.py); tests and
-            single frames are faster eager. ``drake-cert certify --compile auto`` turns it on
-            for long runs. Falls back to eager with a warning if compilation fails.
-            Certificates are those of the model as evaluated.
-    """
-
-    def __init__(self, base: torch.nn.Module, num_classes: int, sigma: float, *,
-                 device: str | torch.device = "cpu", compile: bool = False):
-        _check_count(num_classes, "num_classes")
-        if num_classes < 2:
-            raise CertificationError(f"num_classes = {num_classes} must be >= 2")
-        self.num_classes = int(num_classes)
+    def __init__(self, base: torch.nn.Module, sigma: float, device: str | torch.device,
+                 compile: bool):
         self._sampler = _NoisySampler(base, sigma, device, compile)
         self.sigma = self._sampler.sigma
         self.device = self._sampler.device
@@ -424,6 +406,33 @@ class SmoothedClassifier:
     def warmup(self, frame_shape: Sequence[int], batch_size: int) -> float:
         """Evaluate one batch (compiles the model when asked); returns the seconds taken."""
         return self._sampler.warmup(frame_shape, batch_size)
+
+
+class SmoothedClassifier(_SmoothedModel):
+    """The smoothed classifier ``g(x) = argmax_l P(f(x + N(0, sigma^2 I)) = l)`` (Cohen et al.).
+
+    Args:
+        base: torch module mapping [B, C, H, W] frames to [B, num_classes] scores (logits).
+            It is moved to ``device`` and put in eval mode.
+        num_classes: K, the number of labels.
+        sigma: noise level (standard deviation per pixel, [0, 1] pixel units), > 0.
+        device: "cpu" (default) or a CUDA device when asked for.
+        compile: compile the base model with ``torch.compile`` (inductor, weights frozen).
+            Default False: compiling takes ~15 s cold (~4 s with a warm inductor cache) on 2
+            CPU cores and needs a C++ compiler, and pays off only after ~5 x 10^4 samples
+            (benchmarks/bench_smoothing.py); tests and
+            single frames are faster eager. ``drake-cert certify --compile auto`` turns it on
+            for long runs. Falls back to eager with a warning if compilation fails.
+            Certificates are those of the model as evaluated.
+    """
+
+    def __init__(self, base: torch.nn.Module, num_classes: int, sigma: float, *,
+                 device: str | torch.device = "cpu", compile: bool = False):
+        _check_count(num_classes, "num_classes")
+        if num_classes < 2:
+            raise CertificationError(f"num_classes = {num_classes} must be >= 2")
+        self.num_classes = int(num_classes)
+        super().__init__(base, sigma, device, compile)
 
     def sample_counts(self, x: torch.Tensor, num: int, batch_size: int,
                       generator: torch.Generator | None = None, *,
@@ -594,7 +603,7 @@ def _preference(cert: RuntimeCertificate) -> tuple[float, float, int]:
 
 # --------------------------------------------------------------------------- regression
 
-class MedianSmoothedRegressor:
+class MedianSmoothedRegressor(_SmoothedModel):
     """Median smoothing ``h_0.5(x)`` of a scalar regressor (Chiang et al. 2020; DESIGN 3).
 
     Args:
@@ -605,16 +614,7 @@ class MedianSmoothedRegressor:
 
     def __init__(self, base: torch.nn.Module, sigma: float, *,
                  device: str | torch.device = "cpu", compile: bool = False):
-        self._sampler = _NoisySampler(base, sigma, device, compile)
-        self.sigma = self._sampler.sigma
-        self.device = self._sampler.device
-
-    @property
-    def compile_seconds(self) -> float:
-        return self._sampler.compile_seconds if self._sampler.compiled else 0.0
-
-    def warmup(self, frame_shape: Sequence[int], batch_size: int) -> float:
-        return self._sampler.warmup(frame_shape, batch_size)
+        super().__init__(base, sigma, device, compile)
 
     def sample_sorted(self, x: torch.Tensor, num: int, batch_size: int,
                       generator: torch.Generator | None = None) -> np.ndarray:

@@ -20,3 +20,14 @@ def default_design_table():
     return DesignTable(designs, vehicle, settings,
                        provenance(seed=None, command=["pytest", "default_design_table"]),
                        conditions)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def one_torch_thread():
+    """Tiny torch models run on one thread: no oversubscription on a shared 2-core machine."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -24,13 +24,6 @@ FAST = ["--preset", PRESET, "--size", "16", "--frames", "3", "--n0", "10", "--n"
         "--batch-size", "100", "--compile", "off", "--attack-steps", "2"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 @pytest.fixture(scope="module")
 def models(tmp_path_factory):

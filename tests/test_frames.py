@@ -15,13 +15,6 @@ from drake_cert.probe import mean_colour_probe_accuracy
 TABLE = load_conditions()
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 def test_same_seed_gives_the_same_bytes_and_another_seed_other_frames():
     a = generate_frames(TABLE, "carla-like", seed=3, frames_per_class=6)

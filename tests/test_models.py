@@ -26,13 +26,6 @@ TINY = TrainConfig(width=8, batch_size=32, epochs=8)
 SHIPPED_PRESETS = ["carla-like", "rtk-like", "robotcar-like"]
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 @pytest.fixture(scope="module")
 def tiny():

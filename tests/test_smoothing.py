@@ -65,14 +65,6 @@ class Linear(torch.nn.Module):
         return y[:, None] if self.column else y
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread():
-    """Tiny models: one thread avoids oversubscription on a shared 2-core machine."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
-
 
 def _random_linear(rng: np.random.Generator):
     w = torch.tensor(rng.normal(size=int(np.prod(SHAPE))), dtype=torch.float32)

@@ -13,7 +13,8 @@ TINY = ["--preset", "rtk-like", "--frames-per-class", "12", "--epochs", "1"]
 
 
 @pytest.fixture(autouse=True)
-def one_thread():
+def restore_torch_threads():
+    """`drake-cert train --threads` changes the process-wide count: put it back."""
     before = torch.get_num_threads()
     yield
     torch.set_num_threads(before)
