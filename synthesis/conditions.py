@@ -14,7 +14,6 @@ d. ``grip``: steady-state slip angles at ``C_lo`` within ``slip_angle_max`` (rad
 """
 
 import functools
-import warnings
 
 import cvxpy as cp
 import numpy as np
@@ -22,6 +21,7 @@ import numpy as np
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from synthesis.equilibrium import adaptive_steady_states
+from synthesis.gains import solve_sdp
 from synthesis.l1_norm import integral_abs_exponential_sums, l1_norm
 from synthesis.uncertainty import NominalModel, matched_uncertainty, nominal_model
 
@@ -180,13 +180,7 @@ def reference_stability_lmi(vehicle: VehicleParams, k_m, interval, speed_lo_mps:
     for param, m in zip(mats, corner_mats, strict=True):
         param.value = m / scale  # same Lyapunov matrix; better conditioned for the solver
     eps.value = lmi_margin
-    try:
-        with warnings.catch_warnings():  # "may be inaccurate": status is checked below
-            warnings.simplefilter("ignore", UserWarning)
-            problem.solve(solver=cp.CLARABEL)
-    except cp.error.SolverError:
-        return False
-    return problem.status == cp.OPTIMAL
+    return solve_sdp(problem)
 
 
 def steady_state_offset_margin(vehicle: VehicleParams, k_m, interval, speed_mps: float,

@@ -29,6 +29,20 @@ GRID_CHECK_TOLERANCE = 1.0e-6  # 1/s slack on the decay rate in the grid check
 SPEED_BISECTION_TOLERANCE_MPS = 0.25
 
 
+
+def solve_sdp(problem: cp.Problem) -> bool:
+    """Solve ``problem`` with Clarabel; True only when the status is OPTIMAL.
+
+    Solver failures and "may be inaccurate" warnings count as not solved (the status decides).
+    """
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            problem.solve(solver=cp.CLARABEL)
+    except cp.error.SolverError:
+        return False
+    return problem.status == cp.OPTIMAL
+
 def corner_points(interval, speed_lo_mps: float, speed_hi_mps: float) -> list[tuple[float, float]]:
     """The four (C, V) corners of ``interval x [speed_lo, speed_hi]``."""
     lo, hi = interval
@@ -54,13 +68,7 @@ def state_feedback_lmi(vehicle: VehicleParams, interval, speed_lo_mps: float,
         constraints.append(0.5 * (lyap + lyap.T) << -lmi_margin * eye)
     constraints.append(cp.bmat([[t, y], [y.T, x]]) >> 0)
     problem = cp.Problem(cp.Minimize(t[0, 0]), constraints)
-    try:
-        with warnings.catch_warnings():  # "may be inaccurate": status is checked below
-            warnings.simplefilter("ignore", UserWarning)
-            problem.solve(solver=cp.CLARABEL)
-    except cp.error.SolverError:
-        return None
-    if problem.status != cp.OPTIMAL or x.value is None:
+    if not solve_sdp(problem) or x.value is None:
         return None
     return np.linalg.solve(x.value, y.value.reshape(4))  # k_m = Y X^-1 (X symmetric)
 
