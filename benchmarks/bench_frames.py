@@ -1,4 +1,4 @@
-"""Frame generation throughput: batched rendering (drake_cert.frames) vs one frame at a time.
+"""Frame generation throughput: batched rendering (perception.frames) vs one frame at a time.
 
 Both render the same number of carla-like frames with the same code; the only difference is
 the batch (``frames.CHUNK``): 250 frames per call vs 1 (the shape of a per-image generator
@@ -16,8 +16,8 @@ import time
 
 import torch
 
-from drake_cert import frames
 from drake_cert.config import load_conditions
+from drake_cert.perception import frames
 
 
 def time_generation(table, count_per_class: int, chunk: int) -> float:

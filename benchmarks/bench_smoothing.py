@@ -21,8 +21,8 @@ import numpy as np
 import torch
 from scipy.stats import beta as beta_dist
 
-from drake_cert.models import SmallResNet
-from drake_cert.smoothing import SmoothedClassifier
+from drake_cert.certification.classifier import SmoothedClassifier
+from drake_cert.perception.models import SmallResNet
 
 
 def plain_counts(model, x, num, batch_size, sigma, num_classes):

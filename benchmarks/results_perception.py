@@ -28,16 +28,16 @@ import time
 from pathlib import Path
 
 from drake_cert.config import load_conditions
-from drake_cert.datasets import load_split
 from drake_cert.errors import ModelNotFoundError
-from drake_cert.io import atomic_write_text, provenance
-from drake_cert.models import file_sha256, load_model, model_path, sigma_tag
-from drake_cert.perception_eval import (
+from drake_cert.experiments.perception_eval import (
     CertifySettings,
     certify_classifier,
     select_frames,
     summarize_classification,
 )
+from drake_cert.io import atomic_write_text, provenance
+from drake_cert.perception.datasets import load_split
+from drake_cert.perception.models import file_sha256, load_model, model_path, sigma_tag
 
 PRESETS = ("carla-like", "rtk-like", "robotcar-like")
 SIGMAS = (0.0, 0.25, 0.5, 1.0)

@@ -11,16 +11,16 @@ import numpy as np
 import pytest
 import torch
 
-from drake_cert.attacks import AttackSettings, attack, efficiency_attack, stability_attack
-from drake_cert.config import load_conditions
-from drake_cert.smoothing import (
-    ABSTAIN,
-    MedianSmoothedRegressor,
-    SmoothedClassifier,
-    calibrate_conformal,
-    runtime_classification_interval,
-    runtime_interval,
+from drake_cert.certification.attacks import (
+    AttackSettings,
+    attack,
+    efficiency_attack,
+    stability_attack,
 )
+from drake_cert.certification.classifier import ABSTAIN, SmoothedClassifier
+from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
+from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+from drake_cert.config import load_conditions
 
 PRESET = "carla-like"
 SIGMA = 0.25
@@ -234,8 +234,8 @@ def test_pgd_at_half_budget_breaks_the_shipped_nonrobust_classifier(preset):
 
     A frame counts as robust only if neither the stability nor the efficiency attack flips it.
     """
-    from drake_cert.datasets import load_split
-    from drake_cert.models import load_model
+    from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import load_model
 
     frames = load_split(preset, "test", frames_per_class=10, seed=3)
     f = load_model(preset, "classify", 0.0)

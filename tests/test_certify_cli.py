@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from drake_cert import cli
-from drake_cert.models import (
+from drake_cert.perception.models import (
     SmallResNet,
     StiffnessRegressor,
     file_sha256,

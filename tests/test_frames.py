@@ -5,12 +5,12 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from drake_cert.commands.generate import export_frames
+from drake_cert.cli.generate import export_frames
 from drake_cert.config import load_conditions
-from drake_cert.datasets import load_image_folder, load_split
 from drake_cert.errors import ConfigError
-from drake_cert.frames import STYLES, generate_frames, render_frames
-from drake_cert.probe import mean_colour_probe_accuracy
+from drake_cert.perception.datasets import load_image_folder, load_split
+from drake_cert.perception.frames import STYLES, generate_frames, render_frames
+from drake_cert.perception.probe import mean_colour_probe_accuracy
 
 TABLE = load_conditions()
 
@@ -96,12 +96,12 @@ def test_splits_are_disjoint_and_reproducible():
 
 
 def _split_seed(split):
-    from drake_cert.datasets import split_seed
+    from drake_cert.perception.datasets import split_seed
     return split_seed(0, split)
 
 
 def test_default_split_sizes_follow_the_preset():
-    from drake_cert.datasets import split_frames_per_class
+    from drake_cert.perception.datasets import split_frames_per_class
     assert split_frames_per_class(4000, "train") == 4000
     assert split_frames_per_class(4000, "test") == 800
     assert split_frames_per_class(400, "calibration") == 80
@@ -148,7 +148,7 @@ def test_image_folder_rejects_unknown_labels(tmp_path):
 
 
 def test_disk_cache_returns_the_generated_bytes(tmp_path, monkeypatch):
-    from drake_cert.datasets import clear_cache
+    from drake_cert.perception.datasets import clear_cache
     monkeypatch.setenv("DRAKE_CERT_DATA_CACHE", str(tmp_path))
     clear_cache()
     fresh = load_split("carla-like", "calibration", seed=5, frames_per_class=4, size=32)

@@ -3,9 +3,9 @@
 import pytest
 import torch
 
-from drake_cert.datasets import load_split
 from drake_cert.errors import ConfigError, ModelNotFoundError
-from drake_cert.models import (
+from drake_cert.perception.datasets import load_split
+from drake_cert.perception.models import (
     SmallResNet,
     StiffnessRegressor,
     file_sha256,
@@ -13,8 +13,8 @@ from drake_cert.models import (
     model_path,
     save_model,
 )
-from drake_cert.probe import mean_colour_probe_accuracy
-from drake_cert.training import (
+from drake_cert.perception.probe import mean_colour_probe_accuracy
+from drake_cert.perception.training import (
     TrainConfig,
     evaluate_accuracy,
     evaluate_mse,

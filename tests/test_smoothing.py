@@ -9,22 +9,19 @@ import torch
 from scipy.optimize import brentq
 from scipy.stats import norm
 
-from drake_cert.config import load_conditions
-from drake_cert.errors import CertificationError
-from drake_cert.smoothing import (
-    ABSTAIN,
-    ClassCertificate,
-    MedianSmoothedRegressor,
-    SmoothedClassifier,
+from drake_cert.certification.classifier import ABSTAIN, ClassCertificate, SmoothedClassifier
+from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
+from drake_cert.certification.regressor import MedianSmoothedRegressor
+from drake_cert.certification.statistics import (
     clopper_pearson_bounds,
     conformal_beta,
     conformity_score,
     percentile_bound_indices,
     percentile_bounds,
-    runtime_classification_interval,
-    runtime_interval,
     safe_set_radius,
 )
+from drake_cert.config import load_conditions
+from drake_cert.errors import CertificationError
 
 SHAPE = (1, 4, 4)  # tiny frames: the statistics, not the model, are under test
 
@@ -367,7 +364,7 @@ def test_model_output_mismatch_and_bad_safe_sets_are_rejected():
 
 @pytest.mark.slow
 def test_compiled_model_certifies_like_the_eager_model():
-    from drake_cert.models import SmallResNet
+    from drake_cert.perception.models import SmallResNet
 
     torch.manual_seed(0)
     model = SmallResNet(3, width=4).eval()

@@ -7,7 +7,7 @@ import torch
 import yaml
 
 from drake_cert import cli
-from drake_cert.models import load_model, model_path
+from drake_cert.perception.models import load_model, model_path
 
 TINY = ["--preset", "rtk-like", "--frames-per-class", "12", "--epochs", "1"]
 

@@ -34,7 +34,7 @@ def run(args) -> int:
     import torch
 
     from drake_cert.config import load_conditions
-    from drake_cert.datasets import load_split
+    from drake_cert.perception.datasets import load_split
 
     torch.set_num_threads(max(1, int(args.threads)))
     if args.out is None and args.export is None:

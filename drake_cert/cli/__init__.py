@@ -1,6 +1,6 @@
 """``drake-cert`` command line: one line and exit code 2 for user mistakes, never a traceback.
 
-Sub-commands live in ``drake_cert.commands.<name>``, imported only when used (so that
+Sub-commands live in ``drake_cert.cli.<name>``, imported only when used (so that
 ``drake-cert verify`` does not import torch). Each module defines ``configure(parser)`` and
 ``run(args) -> int``. Machine-readable output goes to stdout (``--json``), progress and
 messages to stderr.
@@ -35,7 +35,7 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
     for name, help_text in COMMANDS.items():
         p = sub.add_parser(name, help=help_text, description=help_text)
         if name == command:
-            importlib.import_module(f"drake_cert.commands.{name}").configure(p)
+            importlib.import_module(f"drake_cert.cli.{name}").configure(p)
     return parser
 
 
@@ -47,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.command is None:
         parser.print_help(sys.stderr)
         return 2
-    module = importlib.import_module(f"drake_cert.commands.{args.command}")
+    module = importlib.import_module(f"drake_cert.cli.{args.command}")
     try:
         return int(module.run(args) or 0)
     except DrakeCertError as e:
@@ -57,6 +57,3 @@ def main(argv: list[str] | None = None) -> int:
         print(f"drake-cert {args.command}: interrupted", file=sys.stderr)
         return 130
 
-
-if __name__ == "__main__":
-    sys.exit(main())

@@ -25,9 +25,9 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
-from drake_cert.datasets import FrameSet
 from drake_cert.io import atomic_write_bytes
-from drake_cert.models import SmallResNet, StiffnessRegressor
+from drake_cert.perception.frameset import FrameSet
+from drake_cert.perception.models import SmallResNet, StiffnessRegressor
 
 STIFFNESS_UNIT = 1.0e5  # N/rad; regression targets are fitted in this unit
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import torch
 
-from drake_cert.datasets import FrameSet
+from drake_cert.perception.frameset import FrameSet
 
 
 def mean_colour(images: torch.Tensor) -> torch.Tensor:

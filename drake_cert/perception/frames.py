@@ -35,8 +35,8 @@ import torch
 import torch.nn.functional as F
 
 from drake_cert.config import ConditionsTable
-from drake_cert.datasets import FrameSet
 from drake_cert.errors import ConfigError
+from drake_cert.perception.frameset import FrameSet
 
 CHUNK = 250  # frames rendered per batch
 SUPERSAMPLE = 1  # render at this multiple of the size and average blocks (anti-aliasing)

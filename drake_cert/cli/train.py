@@ -61,7 +61,7 @@ def run(args) -> int:
     import torch
 
     from drake_cert.config import load_conditions
-    from drake_cert.models import check_sigma
+    from drake_cert.perception.models import check_sigma
 
     torch.set_num_threads(max(1, int(args.threads)))
     table = load_conditions(args.conditions)
@@ -95,7 +95,7 @@ def run(args) -> int:
 
 def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
     """The equivalent single-model command line (recorded in the model's provenance)."""
-    from drake_cert.models import sigma_tag
+    from drake_cert.perception.models import sigma_tag
 
     cmd = ["drake-cert", "train", "--preset", preset, "--task", task, "--sigma", sigma_tag(sigma)]
     if args.epochs is not None and task == "classify":
@@ -113,9 +113,9 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
 
 def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
     """Train (classify) or fit (regress) one model unless its file exists; returns its metrics."""
-    from drake_cert.datasets import load_split
     from drake_cert.io import provenance
-    from drake_cert.models import (
+    from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import (
         file_sha256,
         load_model,
         model_path,
@@ -123,7 +123,7 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
         sigma_tag,
         train_command,
     )
-    from drake_cert.training import (
+    from drake_cert.perception.training import (
         evaluate_accuracy,
         evaluate_mse,
         fit_regressor,
@@ -191,7 +191,7 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
 def update_manifest(root: Path, path: Path, meta: dict) -> None:
     """Record one model in ``<root>/MANIFEST.yaml``: command line, SHA-256, metrics."""
     from drake_cert.io import atomic_write_text
-    from drake_cert.models import file_sha256
+    from drake_cert.perception.models import file_sha256
 
     manifest_path = root / "MANIFEST.yaml"
     manifest = {}

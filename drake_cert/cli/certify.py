@@ -12,7 +12,7 @@ import json
 import math
 import sys
 
-from drake_cert.perception_eval import CertifySettings
+from drake_cert.experiments.perception_eval import CertifySettings
 
 DATA_SEED = 0  # the synthetic splits the shipped models were trained and tested on
 
@@ -79,17 +79,17 @@ def settings_from_args(args: argparse.Namespace) -> CertifySettings:
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
+    from drake_cert.certification.sampler import resolve_device
     from drake_cert.config import load_conditions
-    from drake_cert.datasets import load_split
-    from drake_cert.io import provenance
-    from drake_cert.models import check_sigma, load_model
-    from drake_cert.perception_eval import (
+    from drake_cert.experiments.perception_eval import (
         certify_classifier,
         certify_regressor,
         json_safe,
         select_frames,
     )
-    from drake_cert.smoothing import resolve_device
+    from drake_cert.io import provenance
+    from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import check_sigma, load_model
 
     settings = settings_from_args(args)
     table = load_conditions()
@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def format_summary(s: dict) -> str:
-    """Human-readable lines of a summary (see drake_cert.perception_eval)."""
+    """Human-readable lines of a summary (see drake_cert.experiments.perception_eval)."""
     head = (f"{s['preset']} {s['task']} sigma={s['sigma']:g} attack={s['attack']} "
             f"eps={s['eps']:g}: {s['frames']} frames")
     if s["task"] == "classify":

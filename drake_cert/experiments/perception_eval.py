@@ -15,18 +15,13 @@ from collections.abc import Callable, Iterable
 import numpy as np
 import torch
 
-from drake_cert.attacks import AttackSettings, attack
+from drake_cert.certification.attacks import AttackSettings, attack
+from drake_cert.certification.classifier import SmoothedClassifier, check_enough_samples
+from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
+from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+from drake_cert.certification.statistics import percentile_bound_indices
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import CertificationError
-from drake_cert.smoothing import (
-    MedianSmoothedRegressor,
-    SmoothedClassifier,
-    calibrate_conformal,
-    check_enough_samples,
-    percentile_bound_indices,
-    runtime_classification_interval,
-    runtime_interval,
-)
 
 COMPILE_AUTO_SAMPLES = 50_000  # "auto" compiles from this many samples (pays back ~20 s)
 

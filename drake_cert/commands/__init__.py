@@ -1,1 +1,0 @@
-"""One module per CLI sub-command: each defines ``configure(parser)`` and ``run(args) -> int``."""
