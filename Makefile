@@ -1,5 +1,6 @@
 # Two commands do all set-up on a fresh machine (Python 3.11 with venv):
-#   make run    synthesize the default design table and simulate the closed loop
+#   make run    synthesize and verify the design table, then drive the dry-to-snow route
+#               certified vs base under a stability attack (plot, Meshcat page, tape)
 #   make test   run the test suite (fast tests; `make test-slow` runs the rest)
 PY ?= python3
 VENV := .venv
@@ -11,13 +12,14 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray]'
 	touch $(STAMP)
 
 run: $(STAMP)
 	$(BIN)/drake-cert synthesize --out results/designs.yaml
 	$(BIN)/drake-cert verify results/designs.yaml
-	$(BIN)/drake-cert simulate --designs results/designs.yaml --plot results/closed_loop.png
+	$(BIN)/drake-cert drive --scenario dry_to_snow --compare --attack sa --designs results/designs.yaml \
+		--plot results/drive.png --meshcat results/drive.html --out results/drive.csv
 
 test: $(STAMP)
 	$(BIN)/python -m pytest -q

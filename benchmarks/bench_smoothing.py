@@ -22,6 +22,7 @@ import torch
 from scipy.stats import beta as beta_dist
 
 from drake_cert.certification.classifier import SmoothedClassifier
+from drake_cert.certification.sampler import Bfloat16Model, bf16_supported
 from drake_cert.perception.models import SmallResNet
 
 
@@ -57,6 +58,8 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.25)
     parser.add_argument("--size", type=int, default=64)
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all)")
+    parser.add_argument("--bf16", action="store_true",
+                        help="also certify the bfloat16 model (compiled) and its plain loop")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -86,6 +89,17 @@ def main() -> None:
         "ours, eager": lambda: eager.certify(x, args.n0, args.n, 0.001, args.batch_size),
         "ours, compiled": lambda: compiled.certify(x, args.n0, args.n, 0.001, args.batch_size),
     }
+    if args.bf16:
+        # bfloat16 (issue 10, item 6): the certificate is of the bf16 model as evaluated; the
+        # plain loop through the same bf16 model is shown too (the same dtype path).
+        bf16_model = Bfloat16Model(model).eval()
+        bf16 = SmoothedClassifier(model, num_classes, args.sigma, compile=True, precision="bf16")
+        print(f"bf16 compilation: {bf16.warmup(shape, args.batch_size):.1f} s "
+              f"(native bf16 on this CPU: {bf16_supported()})")
+        methods["plain loop, bf16 model"] = lambda: plain_certify(
+            bf16_model, x, args.n0, args.n, 0.001, args.batch_size, args.sigma, num_classes)
+        methods["ours, compiled bf16"] = lambda: bf16.certify(x, args.n0, args.n, 0.001,
+                                                              args.batch_size)
     times: dict[str, list[float]] = {k: [] for k in methods}
     for _ in range(args.reps):
         for name, fn in methods.items():

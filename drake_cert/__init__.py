@@ -1,15 +1,9 @@
 """drake-cert: certified robust perception-based lateral control (Yang et al., ACC 2023).
 
-The public API, in the order a user meets it::
-
-    import drake_cert as dc
-    vehicle, conditions, settings = dc.load_vehicle(), dc.load_conditions(), dc.load_settings()
-    design = dc.synthesize_design(vehicle, conditions.hull(("heavy_rain",)),
-                                  conditions.condition("heavy_rain").friction_mu, settings)
-    tape = dc.simulate(vehicle=vehicle, design=design, settings=settings,
-                       stiffness_n_per_rad=45e3, friction_mu=0.5,
-                       speed_mps=design.speed_mps, road=dc.Road.curve(radius_m=50.0))
-    print(dc.metrics.peak_lateral_offset(tape), tape.lateral_offset_m[-1])
+The public API, in the order a user meets it (the README's ten-line example runs it):
+load the vehicle, conditions and settings; synthesize a design for a stiffness interval;
+simulate the closed loop; read the tape with :mod:`drake_cert.metrics`; load a scenario and
+drive it through the certified Diagram.
 
 Packages: ``drake_cert`` (foundation: config, errors, io, dynamics, metrics; subpackages
 ``perception``, ``certification``, ``experiments``, ``cli``), ``synthesis`` (convex gain
@@ -43,6 +37,11 @@ _PUBLIC = {
     "Road": "systems.road",
     "simulate": "systems.closed_loop",
     "Tape": "systems.closed_loop",
+    "load_scenario": "systems.scenario",
+    "build_certified_driving_diagram": "systems.driving",
+    "drive": "systems.driving",
+    "drive_scenario": "systems.driving",
+    "with_overrides": "systems.driving",
 }
 
 __all__ = ["__version__", *_PUBLIC]

@@ -33,6 +33,11 @@ class VehicleParams:
     steering_limit_rad: float = 0.5  # |u| saturation
     lane_width_m: float = 3.5
     car_width_m: float = 1.8
+    # factor on the conditions table's per-tire stiffness intervals for this vehicle's tires
+    # (dimensionless; optional key, default 1): designs are synthesized and verified on
+    # [scale C_lo, scale C_hi] of each label (ConditionsTable.with_stiffness_scale)
+    tire_stiffness_scale: float = dataclasses.field(default=1.0,
+                                                    metadata={"optional": True})
 
     @property
     def lane_margin_m(self) -> float:
@@ -41,8 +46,12 @@ class VehicleParams:
 
     def validate(self, where: str = "vehicle") -> None:
         for key in ("mass_kg", "yaw_inertia_kg_m2", "lf_m", "lr_m", "steering_limit_rad",
-                    "lane_width_m", "car_width_m"):
+                    "lane_width_m", "car_width_m", "tire_stiffness_scale"):
             _require_positive(getattr(self, key), key, where)
+        if self.steering_limit_rad >= 0.5 * math.pi:
+            raise ConfigError(f"{where}: steering_limit_rad = {self.steering_limit_rad} must be "
+                              f"below pi/2 = {0.5 * math.pi:.6f} rad (the plant's tan(u) is "
+                              "singular there); is it in degrees?")
         if self.car_width_m >= self.lane_width_m:
             raise ConfigError(f"{where}: car_width_m ({self.car_width_m}) must be less than "
                               f"lane_width_m ({self.lane_width_m})")
@@ -114,6 +123,16 @@ class ConditionsTable:
         return (min(c.stiffness_lo_n_per_rad for c in conds),
                 max(c.stiffness_hi_n_per_rad for c in conds))
 
+    def with_stiffness_scale(self, scale: float) -> "ConditionsTable":
+        """This table with every stiffness interval multiplied by ``scale`` (a vehicle's
+        ``tire_stiffness_scale``; friction unchanged). Returns ``self`` for 1."""
+        if scale == 1.0:
+            return self
+        return dataclasses.replace(self, conditions=[
+            dataclasses.replace(c, stiffness_lo_n_per_rad=c.stiffness_lo_n_per_rad * scale,
+                                stiffness_hi_n_per_rad=c.stiffness_hi_n_per_rad * scale)
+            for c in self.conditions])
+
     def envelope(self, preset: str) -> tuple[float, float]:
         """The preset's most conservative interval: the hull of all its labels (N/rad)."""
         return self.hull(self.preset(preset).labels)
@@ -170,6 +189,9 @@ class ControllerSettings:
     sample_period_s: float = 1.0e-3  # T_s of the piecewise-constant law
     projection_epsilon: float = 0.1  # epsilon of the projection operator's convex function
     bound_factor: float = 1.1  # parameter sets are this factor times the largest value
+    # smallest road radius (m) the adaptation sets cover: the gradient law's bound on |sigma|
+    # is taken at curvature 1 / this (the default equals synthesis.design_radius_m)
+    min_radius_m: float = dataclasses.field(default=50.0, metadata={"optional": True})
 
     def validate(self, where: str = "settings") -> None:
         if self.adaptation_law not in ("piecewise_constant", "gradient"):
@@ -178,6 +200,7 @@ class ControllerSettings:
         _require_positive(self.adaptation_gain, "controller.adaptation_gain", where)
         _require_positive(self.sample_period_s, "controller.sample_period_s", where)
         _require_positive(self.projection_epsilon, "controller.projection_epsilon", where)
+        _require_positive(self.min_radius_m, "controller.min_radius_m", where)
         if self.bound_factor < 1.0:
             raise ConfigError(
                 f"{where}: controller.bound_factor = {self.bound_factor} must be >= 1")
@@ -196,16 +219,23 @@ class SynthesisSettings:
     speed_max_mps: float = 30.0
     filter_gain_max: float = 500.0  # k_bar
     design_radius_m: float = 50.0  # road radius for the offset and grip conditions
-    slip_angle_max_rad: float = 0.03  # linear tire range
-    lateral_accel_fraction: float = 0.7  # a_y <= fraction * mu_lo * g
+    # grip (DESIGN 5.3d): admissible tire slip as a normalised slip z = C |tan a| / (3 mu F_z)
+    # (Fiala: 1 = the patch slides); the design covers secant stiffness down to
+    # C_lo (1 - z + z^2/3) at this bound
+    normalised_slip_max: float = 0.6
+    lateral_accel_fraction: float = 0.85  # a_y <= fraction * mu_lo * g
     speed_grid_step_mps: float = 0.5
     stiffness_grid_points: int = 5
     w_grid_points: int = 5
 
     def validate(self, where: str = "settings") -> None:
         for key in ("decay_rate", "lmi_margin", "filter_gain_max", "design_radius_m",
-                    "slip_angle_max_rad", "lateral_accel_fraction", "speed_grid_step_mps"):
+                    "normalised_slip_max", "lateral_accel_fraction", "speed_grid_step_mps"):
             _require_positive(getattr(self, key), f"synthesis.{key}", where)
+        for key in ("normalised_slip_max", "lateral_accel_fraction"):
+            if getattr(self, key) >= 1.0:
+                raise ConfigError(f"{where}: synthesis.{key} = {getattr(self, key)} must be "
+                                  "below 1 (1 is the friction limit)")
         _require_positive(self.speed_min_mps, "synthesis.speed_min_mps", where)
         if self.speed_min_mps > self.speed_max_mps:
             raise ConfigError(f"{where}: synthesis.speed_min_mps ({self.speed_min_mps}) exceeds "
@@ -225,6 +255,34 @@ class Settings:
     def validate(self, where: str = "settings") -> None:
         self.controller.validate(where)
         self.synthesis.validate(where)
+        if self.controller.min_radius_m > self.synthesis.design_radius_m:
+            raise ConfigError(f"{where}: controller.min_radius_m = {self.controller.min_radius_m} "
+                              "must not exceed synthesis.design_radius_m = "
+                              f"{self.synthesis.design_radius_m} (the sets must cover the design "
+                              "curvature)")
+
+
+# --------------------------------------------------------------------------- label ranges
+
+LABEL_RANGE_SEPARATOR = "+"  # "light_rain+heavy_rain": the one notation printed and parsed
+
+
+def format_label_range(labels: typing.Iterable[str]) -> str:
+    """A label range as printed everywhere (``synthesize``, ``simulate``): "a+b+c"."""
+    return LABEL_RANGE_SEPARATOR.join(labels)
+
+
+def parse_label_range(text: str) -> list[str]:
+    """The labels of a range written as :func:`format_label_range` prints it ("a+b").
+
+    A comma is read as "+" too (the notation of earlier versions). Empty names are errors.
+    """
+    names = [s.strip() for s in text.replace(",", LABEL_RANGE_SEPARATOR).split(
+        LABEL_RANGE_SEPARATOR)]
+    if not text.strip() or any(not n for n in names):
+        raise ConfigError(f"label range {text!r}: expected label names joined by "
+                          f"{LABEL_RANGE_SEPARATOR!r}, e.g. 'light_rain+heavy_rain'")
+    return names
 
 
 # --------------------------------------------------------------------------- loading
@@ -246,7 +304,8 @@ def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
     if unknown:
         raise ConfigError(f"{where}: unknown key {_join(path, unknown[0])!r}; expected one of "
                           f"{', '.join(sorted(fields))}")
-    missing = [f for f in sorted(fields) if f not in data]
+    optional = {f.name for f in dataclasses.fields(schema) if f.metadata.get("optional")}
+    missing = [f for f in sorted(fields) if f not in data and f not in optional]
     if missing:
         raise ConfigError(f"{where}: missing key {_join(path, missing[0])!r}")
     for name in fields:

@@ -63,3 +63,30 @@ def yaw_rate_command(speed_mps, curvature_per_m):
 
 def _is_symbolic(x) -> bool:
     return not isinstance(x, (int, float, np.floating, np.integer))
+
+
+# --------------------------------------------------------------------------- Fiala tire
+
+def fiala_secant_ratio(normalised_slip):
+    """Secant stiffness of the Fiala brush tire over its linear stiffness, ``F / (C tan a) / 1``.
+
+    With the normalised slip ``z = C |tan a| / (3 mu F_z)`` (0: free rolling, 1: the contact
+    patch starts to slide entirely) the Fiala force is ``|F| = mu F_z (3z - 3z^2 + z^3)`` for
+    ``z <= 1`` and ``mu F_z`` beyond, so ``|F| / (C |tan a|) = 1 - z + z^2 / 3`` on ``[0, 1]``
+    (decreasing from 1 to 1/3) and ``1 / (3 z)`` beyond. A tire whose slip stays within
+    ``z <= z_b`` acts as a linear tire whose stiffness lies in ``[C (1 - z_b + z_b^2/3), C]``.
+    Floats or numpy arrays (dimensionless).
+    """
+    z = np.abs(np.asarray(normalised_slip, dtype=float))
+    inside = 1.0 - z + z * z / 3.0
+    return np.where(z <= 1.0, inside, 1.0 / (3.0 * np.maximum(z, 1.0)))
+
+
+def fiala_normalised_slip_at_utilisation(utilisation):
+    """Normalised slip ``z`` at which the Fiala force reaches ``utilisation * mu F_z``.
+
+    Inverse of ``u = 3z - 3z^2 + z^3 = 1 - (1 - z)^3`` on ``[0, 1]``: ``z = 1 - (1 - u)^(1/3)``.
+    ``utilisation`` in ``[0, 1]`` (dimensionless); 1 gives 1 (full sliding).
+    """
+    u = np.clip(np.asarray(utilisation, dtype=float), 0.0, 1.0)
+    return 1.0 - np.cbrt(1.0 - u)

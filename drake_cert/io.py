@@ -36,6 +36,29 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
     return path
 
 
+def check_writable(path: str | os.PathLike, option: str = "output") -> Path:
+    """Raise :class:`ConfigError` unless :func:`atomic_write_bytes` can write ``path``.
+
+    Called before the work that makes the file, so a bad path fails in one line and leaves
+    nothing behind: ``path`` must not be a folder, its nearest existing ancestor must be a
+    folder (not a regular file) that this process may write (folders in between are made).
+    ``option`` names the command-line option in the message.
+    """
+    from drake_cert.errors import ConfigError
+
+    path = Path(path)
+    if path.is_dir():
+        raise ConfigError(f"{option} {path}: is a folder; give a file name")
+    ancestor = path.parent
+    while not ancestor.exists() and ancestor != ancestor.parent:
+        ancestor = ancestor.parent
+    if not ancestor.is_dir():
+        raise ConfigError(f"{option} {path}: {ancestor} is a file, not a folder")
+    if not os.access(ancestor, os.W_OK | os.X_OK):
+        raise ConfigError(f"{option} {path}: folder {ancestor} is not writable")
+    return path
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))

@@ -9,8 +9,12 @@ b. ``reference_stability``: the reference system (the loop with the true uncerta
    every C in the interval and every speed in ``[V_min, V]``; margin ``-max Re eig`` (1/s).
 c. ``steady_state_offset``: lane margin minus ``max_C |e1|`` at the equilibrium of the
    adaptive loop on the design curvature (``synthesis.equilibrium``); metres.
-d. ``grip``: steady-state slip angles at ``C_lo`` within ``slip_angle_max`` (rad) and lateral
-   acceleration ``V^2 / R <= lateral_accel_fraction * mu_lo * g`` (m/s^2).
+d. ``grip``: the tire as it is at the slip the design admits. The Fiala tire's secant
+   stiffness over normalised slips ``z = C |tan a| / (3 mu F_z) <= z_b`` lies in
+   ``[C (1 - z_b + z_b^2/3), C]``; a, b and c are evaluated on the widened interval
+   ``[C_lo (1 - z_b + z_b^2/3), C_hi]`` (:func:`tire_stiffness_lo`), and d asks that the
+   steady slip on the design curve at the least friction stays within ``z_b`` and
+   ``V^2 / R <= lateral_accel_fraction * mu_lo * g`` (m/s^2).
 """
 
 import functools
@@ -19,16 +23,27 @@ import cvxpy as cp
 import numpy as np
 
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics
-from synthesis.equilibrium import adaptive_steady_states
+from drake_cert.dynamics import (
+    fiala_normalised_slip_at_utilisation,
+    fiala_secant_ratio,
+    lateral_error_dynamics,
+)
+from synthesis.equilibrium import adaptive_steady_states, piecewise_constant_steady_states
 from synthesis.gains import solve_sdp
 from synthesis.l1_norm import integral_abs_exponential_sums, l1_norm
-from synthesis.uncertainty import NominalModel, matched_uncertainty, nominal_model
+from synthesis.uncertainty import (
+    NominalModel,
+    matched_uncertainty,
+    nominal_model,
+    output_equivalent_row,
+)
 
 L1_CONDITION = "l1_condition"
 REFERENCE_STABILITY = "reference_stability"
 STEADY_STATE_OFFSET = "steady_state_offset"
 GRIP = "grip"
+GRADIENT = "gradient"  # adaptation laws (settings.controller.adaptation_law)
+PIECEWISE_CONSTANT = "piecewise_constant"
 CONDITIONS = (L1_CONDITION, REFERENCE_STABILITY, STEADY_STATE_OFFSET, GRIP)
 
 # margin keys stored in ControllerDesign.margins (units in the name)
@@ -37,7 +52,7 @@ MARGIN_KEYS = {
     "l1_condition": "1 - ||G||_L1 L (dimensionless)",
     "reference_stability_per_s": "-(max Re eig) of the reference system over [V_min, V]",
     "steady_state_offset_m": "lane margin - max |e1| at equilibrium on the design curve",
-    "grip_slip_angle_rad": "slip_angle_max - max(|alpha_f|, |alpha_r|) at C_lo",
+    "grip_normalised_slip": "normalised_slip_max - steady tire slip z at mu_lo (Fiala)",
     "grip_lateral_accel_mps2": "lateral_accel_fraction mu_lo g - V^2 / R",
 }
 
@@ -116,30 +131,48 @@ def l1_condition_margin(vehicle: VehicleParams, k_m, interval, speed_mps: float,
     return 1.0 - worst * bound
 
 
-def reference_system_matrix(vehicle: VehicleParams, k_m, nominal_stiffness: float,
-                            stiffness: float, speed_mps: float, filter_gain: float) -> np.ndarray:
-    """``[[A(C) - b(C) k_m, b(C)], [-k theta', -k w]]`` (5, 5): plant and filter, no adaptation.
+def filter_state_row(vehicle: VehicleParams, k_m, nominal_stiffness: float, stiffness: float,
+                     speed_mps: float, law: str = GRADIENT) -> np.ndarray:
+    """Gain from s to the filter input in the reference system, by adaptation law.
 
-    The filter ``u_ad' = -k (w u_ad + theta' s)`` acts on the true matched uncertainty
-    ``eta = w u_ad + theta' s`` (sigma is an exogenous input and drops out of stability).
+    Gradient law: ``theta`` (the matched part it estimates). Piecewise-constant law: its
+    4-vector estimate is the whole uncertainty ``b_m theta' s + U s`` (``U`` the unmatched part)
+    and the filter receives ``r`` times it, ``r b_m = 1``: ``theta + U' r``.
+    """
+    _, theta, unmatched = matched_uncertainty(vehicle, stiffness, nominal_stiffness, speed_mps,
+                                              k_m)
+    if law == GRADIENT:
+        return theta
+    nom = nominal_model(vehicle, nominal_stiffness, speed_mps, k_m)
+    return theta + unmatched.T @ output_equivalent_row(nom)
+
+
+def reference_system_matrix(vehicle: VehicleParams, k_m, nominal_stiffness: float,
+                            stiffness: float, speed_mps: float, filter_gain: float,
+                            law: str = GRADIENT) -> np.ndarray:
+    """``[[A(C) - b(C) k_m, b(C)], [-k q', -k w]]`` (5, 5): plant and filter, no adaptation.
+
+    The filter ``u_ad' = -k (w u_ad + q' s)`` acts on the ideal estimate, ``q`` from
+    :func:`filter_state_row` for the law (exogenous inputs drop out of stability).
     """
     k_m = np.asarray(k_m, dtype=float).reshape(4)
     a, b, _ = lateral_error_dynamics(vehicle, stiffness, speed_mps)
-    w, theta, _ = matched_uncertainty(vehicle, stiffness, nominal_stiffness, speed_mps, k_m)
+    w = stiffness / nominal_stiffness
     m = np.zeros((5, 5))
     m[:4, :4] = a - np.outer(b, k_m)
     m[:4, 4] = b
-    m[4, :4] = -filter_gain * theta
+    m[4, :4] = -filter_gain * filter_state_row(vehicle, k_m, nominal_stiffness, stiffness,
+                                               speed_mps, law)
     m[4, 4] = -filter_gain * w
     return m
 
 
 def reference_stability_margin(vehicle: VehicleParams, k_m, interval, speed_lo_mps: float,
                                speed_mps: float, filter_gain: float, stiffness_points: int,
-                               speed_points: int) -> float:
+                               speed_points: int, law: str = GRADIENT) -> float:
     """Condition b on a grid: ``-max Re eig`` of the reference system over C x [V_lo, V] (1/s)."""
     c_hat = 0.5 * (interval[0] + interval[1])
-    mats = [reference_system_matrix(vehicle, k_m, c_hat, c, v, filter_gain)
+    mats = [reference_system_matrix(vehicle, k_m, c_hat, c, v, filter_gain, law)
             for c in np.linspace(interval[0], interval[1], max(stiffness_points, 2))
             for v in np.linspace(speed_lo_mps, speed_mps, max(speed_points, 2))]
     return -float(np.linalg.eigvals(np.array(mats)).real.max())
@@ -185,12 +218,16 @@ def reference_stability_lmi(vehicle: VehicleParams, k_m, interval, speed_lo_mps:
 
 def steady_state_offset_margin(vehicle: VehicleParams, k_m, interval, speed_mps: float,
                                design_radius_m: float, q_ad_diag,
-                               stiffness_points: int) -> float:
-    """Condition c: ``lane margin - max_C |e1|`` at the adaptive equilibrium (m)."""
+                               stiffness_points: int, law: str = GRADIENT) -> float:
+    """Condition c: ``lane margin - max_C |e1|`` at the adaptive equilibrium of the law (m)."""
     c_hat = 0.5 * (interval[0] + interval[1])
-    states = adaptive_steady_states(
-        vehicle, k_m, c_hat, np.linspace(interval[0], interval[1], max(stiffness_points, 2)),
-        speed_mps, 1.0 / design_radius_m, q_ad_diag)
+    grid = np.linspace(interval[0], interval[1], max(stiffness_points, 2))
+    if law == GRADIENT:
+        states = adaptive_steady_states(vehicle, k_m, c_hat, grid, speed_mps,
+                                        1.0 / design_radius_m, q_ad_diag)
+    else:
+        states = piecewise_constant_steady_states(vehicle, k_m, c_hat, grid, speed_mps,
+                                                  1.0 / design_radius_m)
     worst = max(abs(state.lateral_offset_m) for state in states)
     return vehicle.lane_margin_m - worst
 
@@ -212,25 +249,50 @@ def steady_state_slip_angles(vehicle: VehicleParams, stiffness: float, speed_mps
     return alpha_f, alpha_r
 
 
-def grip_margins(vehicle: VehicleParams, stiffness_lo: float, friction_mu_lo: float,
-                 speed_mps: float, radius_m: float, slip_angle_max_rad: float,
-                 lateral_accel_fraction: float) -> tuple[float, float]:
-    """Condition d: ``(slip margin (rad), lateral-acceleration margin (m/s^2))``.
+def tire_stiffness_lo(stiffness_lo: float, normalised_slip_max: float) -> float:
+    """Least effective (secant) stiffness of a Fiala tire whose slip stays within the bound.
 
-    Slip angles scale with 1/C, so C_lo is the worst case of the interval.
+    ``C_lo (1 - z_b + z_b^2 / 3)`` (:func:`drake_cert.dynamics.fiala_secant_ratio`): with the
+    slip bound scaled by ``mu F_z / C`` (``|tan a| <= 3 z_b mu F_z / C``) the ratio is the same
+    for every C, mu and load, so the widened interval is ``[C_lo ratio(z_b), C_hi]`` (N/rad).
     """
-    slip = max(steady_state_slip_angles(vehicle, stiffness_lo, speed_mps, radius_m))
+    return float(stiffness_lo * fiala_secant_ratio(normalised_slip_max))
+
+
+def steady_state_normalised_slip(friction_mu_lo: float, speed_mps: float,
+                                 radius_m: float) -> float:
+    """Normalised slip ``z`` of every tire in steady cornering at ``a_y = V^2 / R`` (Fiala).
+
+    On static loads both axles carry the same share of their grip: the axle forces
+    ``m a_y l_r / L`` and ``m a_y l_f / L`` over the axle grip ``mu m g l_r / L`` and
+    ``mu m g l_f / L`` are both ``u = a_y / (mu g)``; the Fiala tire gives that utilisation at
+    ``z = 1 - (1 - u)^(1/3)`` (1 when ``u >= 1``: the car slides). Uses the least friction,
+    so a label with more grip has less slip. Dimensionless.
+    """
+    utilisation = speed_mps**2 / radius_m / (friction_mu_lo * GRAVITY_MPS2)
+    return float(fiala_normalised_slip_at_utilisation(min(utilisation, 1.0)))
+
+
+def grip_margins(friction_mu_lo: float, speed_mps: float, radius_m: float,
+                 normalised_slip_max: float, lateral_accel_fraction: float
+                 ) -> tuple[float, float]:
+    """Condition d: ``(slip margin (normalised), lateral-acceleration margin (m/s^2))``.
+
+    ``z_b - z(V)`` with :func:`steady_state_normalised_slip`: the steady slip lies inside the
+    range whose secant stiffness the certified interval covers; and
+    ``fraction mu_lo g - V^2 / R``.
+    """
+    slip = steady_state_normalised_slip(friction_mu_lo, speed_mps, radius_m)
     a_y = speed_mps**2 / radius_m
-    return (slip_angle_max_rad - slip,
+    return (normalised_slip_max - slip,
             lateral_accel_fraction * friction_mu_lo * GRAVITY_MPS2 - a_y)
 
 
-def grip_speed_limit_mps(vehicle: VehicleParams, stiffness_lo: float, friction_mu_lo: float,
-                         radius_m: float, slip_angle_max_rad: float,
+def grip_speed_limit_mps(friction_mu_lo: float, radius_m: float, normalised_slip_max: float,
                          lateral_accel_fraction: float) -> float:
-    """Largest speed meeting condition d (both margins grow monotonically worse with V^2)."""
-    wheelbase = vehicle.lf_m + vehicle.lr_m
-    a_slip = slip_angle_max_rad * 2.0 * stiffness_lo * wheelbase / (
-        vehicle.mass_kg * max(vehicle.lf_m, vehicle.lr_m))
-    a_mu = lateral_accel_fraction * friction_mu_lo * GRAVITY_MPS2
-    return float(np.sqrt(min(a_slip, a_mu) * radius_m))
+    """Largest speed meeting condition d (both margins grow monotonically worse with V^2).
+
+    ``a_y <= mu_lo g min(fraction, 1 - (1 - z_b)^3)``, i.e. ``V = sqrt(a_y R)``.
+    """
+    utilisation = min(lateral_accel_fraction, 1.0 - (1.0 - min(normalised_slip_max, 1.0))**3)
+    return float(np.sqrt(utilisation * friction_mu_lo * GRAVITY_MPS2 * radius_m))

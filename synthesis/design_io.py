@@ -30,7 +30,7 @@ from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
 from synthesis.design import ControllerDesign
 
-DESIGN_SCHEMA_VERSION = 1
+DESIGN_SCHEMA_VERSION = 2  # 2: tire_slip_bound, certified_law; Fiala grip rule
 TOP_KEYS_REQUIRED = ("schema_version", "provenance", "vehicle", "settings")
 TOP_KEYS_OPTIONAL = ("conditions", "designs", "design")
 
@@ -60,6 +60,8 @@ def design_to_dict(design: ControllerDesign) -> dict:
         "speed_mps": float(design.speed_mps),
         "failed_condition": str(design.failed_condition),
         "margins": {str(k): float(v) for k, v in design.margins.items()},
+        "tire_slip_bound": float(design.tire_slip_bound),
+        "certified_law": str(design.certified_law),
     }
 
 
@@ -112,6 +114,11 @@ def parse_design_table(raw, where: str) -> DesignTable:
     for key in TOP_KEYS_REQUIRED:
         if key not in raw:
             raise DesignFormatError(f"{where}: missing top-level key {key!r}")
+    if raw["schema_version"] == 1:
+        raise DesignFormatError(
+            f"{where}: schema_version = 1: a design table certified with the old slip-angle "
+            "grip rule and the gradient law's conditions; this version reads "
+            f"{DESIGN_SCHEMA_VERSION} (re-run drake-cert synthesize --out)")
     if raw["schema_version"] != DESIGN_SCHEMA_VERSION:
         raise DesignFormatError(f"{where}: schema_version = {raw['schema_version']!r}; this "
                                 f"version reads {DESIGN_SCHEMA_VERSION}")
@@ -141,7 +148,8 @@ def parse_design_table(raw, where: str) -> DesignTable:
 
 _FLOAT_FIELDS = ("stiffness_lo_n_per_rad", "stiffness_hi_n_per_rad",
                  "nominal_stiffness_n_per_rad", "friction_mu_lo", "gain_speed_max_mps",
-                 "filter_gain", "speed_mps")
+                 "filter_gain", "speed_mps", "tire_slip_bound")
+CERTIFIABLE_LAWS = ("piecewise_constant", "gradient")
 
 
 def design_from_dict(data, where: str) -> ControllerDesign:
@@ -176,6 +184,12 @@ def design_from_dict(data, where: str) -> ControllerDesign:
     if not 0.0 < lo < hi:
         raise DesignFormatError(f"{where}: stiffness interval [{lo}, {hi}] N/rad must satisfy "
                                 "0 < lo < hi")
+    if data["certified_law"] not in CERTIFIABLE_LAWS:
+        raise DesignFormatError(f"{where}.certified_law = {data['certified_law']!r} must be one "
+                                f"of {', '.join(CERTIFIABLE_LAWS)}")
+    if not 0.0 <= data["tire_slip_bound"] < 1.0:
+        raise DesignFormatError(f"{where}.tire_slip_bound = {data['tire_slip_bound']} must lie "
+                                "in [0, 1)")
     for key in ("speed_mps", "filter_gain", "gain_speed_max_mps", "friction_mu_lo"):
         if data[key] < 0.0:
             raise DesignFormatError(f"{where}.{key} = {data[key]} must not be negative")
@@ -191,6 +205,8 @@ def design_from_dict(data, where: str) -> ControllerDesign:
         speed_mps=float(data["speed_mps"]),
         failed_condition=data["failed_condition"],
         margins={str(k): float(v) for k, v in margins.items()},
+        tire_slip_bound=float(data["tire_slip_bound"]),
+        certified_law=data["certified_law"],
     )
 
 

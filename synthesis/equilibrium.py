@@ -25,7 +25,11 @@ import scipy.linalg
 
 from drake_cert.config import VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
-from synthesis.uncertainty import curvature_feedforward_gain, nominal_model
+from synthesis.uncertainty import (
+    curvature_feedforward_gain,
+    nominal_model,
+    output_equivalent_row,
+)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -83,4 +87,39 @@ def adaptive_steady_states(vehicle: VehicleParams, k_m, nominal_stiffness: float
         rhs = np.concatenate((-(b * u_ff + g * psidot), [p_b @ s_hat]))
         sol = np.linalg.solve(lhs, rhs)
         out.append(AdaptiveSteadyState(sol[:4], s_hat, float(sol[4]), float(u_ff)))
+    return out
+
+
+def piecewise_constant_steady_states(vehicle: VehicleParams, k_m, nominal_stiffness: float,
+                                     stiffnesses, speed_mps: float,
+                                     curvature_per_m: float) -> list[AdaptiveSteadyState]:
+    """Equilibria of the loop with the piecewise-constant law in its ideal limit (T_s -> 0).
+
+    The 4-vector estimate equals the whole uncertainty ``sigma = (A(C) - b(C) k_m - A_m) s +
+    (w - 1) b_m (u_ad + u_ff) + (g - g_hat) psidot`` and the filter rests when
+    ``u_ad + r sigma = 0`` (``r`` the output-equivalent row, ``r b_m = 1``); with the plant at
+    rest these are five linear equations in ``(s, u_ad)``. The predictor equals the plant
+    (``s_hat = s``). Analytically e1 = 0 (the feedforward and r make the nominal DC gain
+    exact), which this solve checks rather than assumes.
+    """
+    k_m = np.asarray(k_m, dtype=float).reshape(4)
+    nom = nominal_model(vehicle, nominal_stiffness, speed_mps, k_m)
+    psidot = yaw_rate_command(speed_mps, curvature_per_m)
+    u_ff = curvature_feedforward_gain(nom) * psidot
+    r = output_equivalent_row(nom)
+    out = []
+    for stiffness in stiffnesses:
+        a, b, g = lateral_error_dynamics(vehicle, stiffness, speed_mps)
+        a_cl = a - np.outer(b, k_m)
+        w = stiffness / nominal_stiffness
+        lhs = np.zeros((5, 5))
+        lhs[:4, :4] = a_cl
+        lhs[:4, 4] = b
+        # u_ad + r sigma = 0, sigma = (a_cl - A_m) s + (w - 1) b_m (u_ad + u_ff) + dg psidot
+        lhs[4, :4] = r @ (a_cl - nom.a_m)
+        lhs[4, 4] = 1.0 + (w - 1.0)
+        rhs = np.concatenate((-(b * u_ff + g * psidot),
+                              [-(w - 1.0) * u_ff - r @ (g - nom.g_hat) * psidot]))
+        sol = np.linalg.solve(lhs, rhs)
+        out.append(AdaptiveSteadyState(sol[:4], sol[:4], float(sol[4]), float(u_ff)))
     return out

@@ -33,6 +33,7 @@ REFINE_BISECTIONS = 5  # the grid cell is refined to step / 32
 FILTER_GAIN_FRACTIONS = np.arange(1, 11) / 10.0
 MIN_LMI_SEGMENT_MPS = 0.25
 GAIN_CHECK_POINTS = (21, 26)
+PC_REFERENCE_GRID = (9, 0.25)  # (C points, speed step m/s) of condition b for the pc law
 
 
 @dataclasses.dataclass(frozen=True)
@@ -78,19 +79,37 @@ class IntervalEvaluator:
         syn = self.settings.synthesis
         return self._memo(("b", speed, k), lambda: cond.reference_stability_margin(
             self.vehicle, self.k_m, self.interval, speed, speed, k,
-            syn.stiffness_grid_points, 2))
+            syn.stiffness_grid_points, 2, self.law))
 
     def offset_margin(self, speed) -> float:
         syn = self.settings.synthesis
         return self._memo(("c", speed), lambda: cond.steady_state_offset_margin(
             self.vehicle, self.k_m, self.interval, speed, syn.design_radius_m,
-            self.settings.controller.q_ad_diag, syn.stiffness_grid_points))
+            self.settings.controller.q_ad_diag, syn.stiffness_grid_points, self.law))
+
+    @property
+    def law(self) -> str:
+        """The adaptation law conditions b and c are stated for (the law that runs)."""
+        return self.settings.controller.adaptation_law
 
     def reference_certified(self, speed, k) -> bool:
-        """Condition b on ``[V_min, speed]`` by corner LMIs on speed segments (cached)."""
-        return self._memo(("b-lmi", speed, k), lambda: certify_reference_stability(
-            self.vehicle, self.k_m, self.interval, self.settings.synthesis.speed_min_mps,
-            speed, k, self.settings.synthesis.lmi_margin))
+        """Condition b on ``[V_min, speed]`` (cached).
+
+        Gradient law: corner LMIs on speed segments (a certificate). Piecewise-constant law:
+        its filter row ``theta + U' r`` is not affine in ``(C, C/V, 1/V)`` (``r`` depends on
+        ``A_m(V)``), so the corner argument does not apply; the reference system's eigenvalues
+        are checked on a fine grid instead (:data:`PC_REFERENCE_GRID`), not a certificate.
+        """
+        syn = self.settings.synthesis
+        if self.law == cond.GRADIENT:
+            return self._memo(("b-lmi", speed, k), lambda: certify_reference_stability(
+                self.vehicle, self.k_m, self.interval, syn.speed_min_mps, speed, k,
+                syn.lmi_margin))
+        points_c, step_v = PC_REFERENCE_GRID
+        points_v = max(2, int(np.ceil((speed - syn.speed_min_mps) / step_v)) + 1)
+        return self._memo(("b-grid", speed, k), lambda: cond.reference_stability_margin(
+            self.vehicle, self.k_m, self.interval, syn.speed_min_mps, speed, k, points_c,
+            points_v, self.law) >= EIG_MARGIN_MIN_PER_S)
 
 
 def certify_reference_stability(vehicle, k_m, interval, speed_lo, speed_hi, k,
@@ -132,13 +151,18 @@ def failed_conditions(margins: dict) -> list[str]:
         failed.append(cond.REFERENCE_STABILITY)
     if margins["steady_state_offset_m"] < OFFSET_MARGIN_MIN_M:
         failed.append(cond.STEADY_STATE_OFFSET)
-    if min(margins["grip_slip_angle_rad"], margins["grip_lateral_accel_mps2"]) < 0.0:
+    if min(margins["grip_normalised_slip"], margins["grip_lateral_accel_mps2"]) < 0.0:
         failed.append(cond.GRIP)
     return failed
 
 
-def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float) -> SpeedSearchResult:
-    """Largest safe speed with its filter gain and margins (module docstring)."""
+def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
+                 slip_bound: float | None = None) -> SpeedSearchResult:
+    """Largest safe speed with its filter gain and margins (module docstring).
+
+    ``slip_bound``: the design's normalised tire slip bound z_b (default
+    ``normalised_slip_max``); the evaluator's interval must be the one widened for it.
+    """
     vehicle, settings = evaluator.vehicle, evaluator.settings
     syn = settings.synthesis
     k_bar = syn.filter_gain_max
@@ -149,14 +173,15 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float) -> SpeedSe
 
     def margins_at(speed, k, ref_floor=np.inf):
         slip, accel = cond.grip_margins(
-            vehicle, evaluator.interval[0], friction_mu_lo, speed, syn.design_radius_m,
-            syn.slip_angle_max_rad, syn.lateral_accel_fraction)
+            friction_mu_lo, speed, syn.design_radius_m,
+            syn.normalised_slip_max if slip_bound is None else slip_bound,
+            syn.lateral_accel_fraction)
         return {
             "gain_decay_per_s": decay_margin,
             "l1_condition": evaluator.l1_margin(speed, k),
             "reference_stability_per_s": min(ref_floor, evaluator.reference_margin_at(speed, k)),
             "steady_state_offset_m": evaluator.offset_margin(speed),
-            "grip_slip_angle_rad": slip,
+            "grip_normalised_slip": slip,
             "grip_lateral_accel_mps2": accel,
         }
 
@@ -178,26 +203,43 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float) -> SpeedSe
         failed = failed_conditions(scan[best]) or [cond.REFERENCE_STABILITY]
         return SpeedSearchResult(0.0, float(k_bar), failed[0], scan[best])
 
-    speed, floor = float(grid[chosen]), scan[chosen]["reference_stability_per_s"]
+    speed = float(grid[chosen])
     if chosen + 1 < len(grid):
-        monotone = {cond.GRIP, cond.REFERENCE_STABILITY}
-        top_failures = set(failed_conditions(scan[chosen + 1])) or {cond.REFERENCE_STABILITY}
-        if top_failures <= monotone:
-            lo, hi = speed, float(grid[chosen + 1])
-            for _ in range(REFINE_BISECTIONS):
-                mid = 0.5 * (lo + hi)
-                m = margins_at(mid, k_bar, floor)
-                if not failed_conditions(m) and evaluator.reference_certified(mid, k_bar):
-                    lo = mid
-                else:
-                    hi = mid
-            speed = lo
-    floor_k = {}
+        speed = refine_cell(evaluator, margins_at, scan, grid, chosen, k_bar)
+    return lowest_filter_gain(evaluator, margins_at, grid, speed, k_bar)
+
+
+def refine_cell(evaluator: IntervalEvaluator, margins_at, scan, grid, chosen: int,
+                k_bar: float) -> float:
+    """Bisect the grid cell above ``grid[chosen]`` when what fails at its top is monotone in V.
+
+    Grip (``V^2 / R``) and b (a growing speed range) are monotone; every bisection point is
+    re-checked against all four conditions. Returns the highest speed that passed (m/s).
+    """
+    speed, floor = float(grid[chosen]), scan[chosen]["reference_stability_per_s"]
+    monotone = {cond.GRIP, cond.REFERENCE_STABILITY}
+    top_failures = set(failed_conditions(scan[chosen + 1])) or {cond.REFERENCE_STABILITY}
+    if not top_failures <= monotone:
+        return speed
+    lo, hi = speed, float(grid[chosen + 1])
+    for _ in range(REFINE_BISECTIONS):
+        mid = 0.5 * (lo + hi)
+        m = margins_at(mid, k_bar, floor)
+        if not failed_conditions(m) and evaluator.reference_certified(mid, k_bar):
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+def lowest_filter_gain(evaluator: IntervalEvaluator, margins_at, grid, speed: float,
+                       k_bar: float) -> SpeedSearchResult:
+    """The smallest multiple of ``k_bar / 10`` meeting every condition at ``speed``."""
     for frac in FILTER_GAIN_FRACTIONS:
         k = float(frac * k_bar)
         grid_below = [v for v in grid if v <= speed] + [speed]
-        floor_k[k] = min(evaluator.reference_margin_at(v, k) for v in grid_below)
-        m = margins_at(speed, k, floor_k[k])
+        floor = min(evaluator.reference_margin_at(v, k) for v in grid_below)
+        m = margins_at(speed, k, floor)
         if not failed_conditions(m) and evaluator.reference_certified(speed, k):
             return SpeedSearchResult(speed, k, "", m)
     raise AssertionError("k_bar qualified during the scan but not in the final check")

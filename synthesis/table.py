@@ -7,10 +7,12 @@ evaluations of the interval-only conditions.
 """
 
 import dataclasses
+import math
 from collections.abc import Callable, Iterable
 
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
-from drake_cert.errors import InfeasibleDesign
+from drake_cert.errors import ConfigError, InfeasibleDesign
+from synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
 from synthesis.design import ControllerDesign
 from synthesis.gains import synthesize_state_feedback
 from synthesis.speed import IntervalEvaluator, search_speed
@@ -50,33 +52,95 @@ class DesignCache:
     failures: dict = dataclasses.field(default_factory=dict)
 
 
+SLIP_BOUND_FRACTIONS = (1.0, 0.8, 0.6, 0.4, 0.2)  # of normalised_slip_max, tried in order
+
+
+def slip_bound_candidates(settings: Settings) -> list[float]:
+    """Normalised slip bounds a design may admit, largest first (DESIGN 5.3d)."""
+    return [f * settings.synthesis.normalised_slip_max for f in SLIP_BOUND_FRACTIONS]
+
+
+def check_design_inputs(interval, friction_mu_lo) -> None:
+    """ConfigError unless ``interval`` is (C_lo, C_hi) with 0 < C_lo <= C_hi finite (N/rad)
+    and 0 < ``friction_mu_lo`` <= 2 (the range the conditions file accepts)."""
+    try:
+        lo, hi = (float(v) for v in interval)
+    except (TypeError, ValueError):
+        raise ConfigError(f"stiffness interval {interval!r} must be two numbers "
+                          "(C_lo, C_hi) in N/rad") from None
+    if not (math.isfinite(lo) and math.isfinite(hi) and 0 < lo <= hi):
+        raise ConfigError(f"stiffness interval ({lo!r}, {hi!r}) must satisfy 0 < C_lo <= C_hi "
+                          "(finite, N/rad)")
+    try:
+        mu = float(friction_mu_lo)
+    except (TypeError, ValueError):
+        raise ConfigError(f"friction_mu_lo = {friction_mu_lo!r} must be a number") from None
+    if not (math.isfinite(mu) and 0 < mu <= 2):
+        raise ConfigError(f"friction_mu_lo = {friction_mu_lo!r} must be in (0, 2]")
+
+
 def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
                       friction_mu_lo: float, settings: Settings, labels=(),
                       cache: DesignCache | None = None) -> ControllerDesign:
     """Gains, filter gain and safe speed for one stiffness interval (N/rad) and friction.
 
-    ``labels``: the label names of the range ([] for a regression interval). A range whose gain
-    LMI is infeasible gets speed 0, ``failed_condition = 'gain_lmi'`` and ``k_m = 0``.
+    ``labels``: the label names of the range ([] for a regression interval). The tire slip
+    bound z_b widens the certified interval to ``[C_lo (1 - z_b + z_b^2/3), C_hi]`` (the
+    Fiala secant stiffness) and caps the grip speed; the bounds of
+    :func:`slip_bound_candidates` are tried largest first, and the fastest design is kept
+    (the search stops once a design reaches the grip speed of its bound, which only falls
+    with smaller bounds). With no safe speed at any bound, the design at the smallest bound
+    says which condition failed. Raises :class:`ConfigError` for an interval that is not
+    two finite numbers 0 < C_lo <= C_hi, or a friction outside (0, 2].
     """
+    check_design_inputs(interval, friction_mu_lo)
     cache = cache if cache is not None else DesignCache()
-    interval = (float(interval[0]), float(interval[1]))
-    c_hat = 0.5 * (interval[0] + interval[1])
-    if interval not in cache.evaluators and interval not in cache.failures:
+    syn = settings.synthesis
+    best = None
+    for slip_bound in slip_bound_candidates(settings):
+        design = design_for_slip_bound(vehicle, interval, friction_mu_lo, settings, labels,
+                                       cache, slip_bound)
+        if (best is None or not best.has_safe_speed
+                or (design.has_safe_speed and design.speed_mps > best.speed_mps)):
+            best = design
+        grip_speed = grip_speed_limit_mps(friction_mu_lo, syn.design_radius_m, slip_bound,
+                                          syn.lateral_accel_fraction)
+        if design.has_safe_speed and design.speed_mps >= grip_speed - syn.speed_grid_step_mps / 16:
+            break
+    return best
+
+
+def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
+                          friction_mu_lo: float, settings: Settings, labels,
+                          cache: DesignCache, slip_bound: float) -> ControllerDesign:
+    """:func:`synthesize_design` at one normalised slip bound z_b.
+
+    Every condition is evaluated on the certified interval ``[C_lo ratio(z_b), C_hi]``
+    (:func:`synthesis.conditions.tire_stiffness_lo`), whose midpoint is ``C_hat``. An interval
+    whose gain LMI is infeasible gives speed 0, ``failed_condition = 'gain_lmi'``, ``k_m = 0``.
+    """
+    label_interval = (float(interval[0]), float(interval[1]))
+    certified = (tire_stiffness_lo(label_interval[0], slip_bound), label_interval[1])
+    c_hat = 0.5 * (certified[0] + certified[1])
+    law = settings.controller.adaptation_law
+    if certified not in cache.evaluators and certified not in cache.failures:
         try:
-            k_m, v_hi = synthesize_state_feedback(vehicle, interval, settings.synthesis)
-            cache.evaluators[interval] = IntervalEvaluator(vehicle, settings, interval, k_m, v_hi)
+            k_m, v_hi = synthesize_state_feedback(vehicle, certified, settings.synthesis)
+            cache.evaluators[certified] = IntervalEvaluator(vehicle, settings, certified, k_m,
+                                                            v_hi)
         except InfeasibleDesign as e:
-            cache.failures[interval] = str(e)
-    if interval in cache.failures:
-        return ControllerDesign(list(labels), interval[0], interval[1], c_hat,
+            cache.failures[certified] = str(e)
+    if certified in cache.failures:
+        return ControllerDesign(list(labels), label_interval[0], label_interval[1], c_hat,
                                 float(friction_mu_lo), [0.0] * 4, 0.0,
-                                settings.synthesis.filter_gain_max, 0.0, GAIN_LMI, {})
-    evaluator = cache.evaluators[interval]
-    result = search_speed(evaluator, friction_mu_lo)
+                                settings.synthesis.filter_gain_max, 0.0, GAIN_LMI, {},
+                                float(slip_bound), law)
+    evaluator = cache.evaluators[certified]
+    result = search_speed(evaluator, friction_mu_lo, slip_bound)
     return ControllerDesign(
         labels=list(labels),
-        stiffness_lo_n_per_rad=interval[0],
-        stiffness_hi_n_per_rad=interval[1],
+        stiffness_lo_n_per_rad=label_interval[0],
+        stiffness_hi_n_per_rad=label_interval[1],
         nominal_stiffness_n_per_rad=c_hat,
         friction_mu_lo=float(friction_mu_lo),
         k_m=[float(x) for x in evaluator.k_m],
@@ -85,6 +149,8 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
         speed_mps=result.speed_mps,
         failed_condition=result.failed_condition,
         margins={k: float(v) for k, v in result.margins.items()},
+        tire_slip_bound=float(slip_bound),
+        certified_law=law,
     )
 
 
@@ -93,8 +159,10 @@ def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settin
                      ) -> list[ControllerDesign]:
     """One design per label range (see :func:`design_label_ranges`), in that order.
 
-    ``progress`` wraps the iteration over label ranges (e.g. ``tqdm``).
+    ``progress`` wraps the iteration over label ranges (e.g. ``tqdm``). The label intervals
+    are the table's times ``vehicle.tire_stiffness_scale`` (friction unchanged).
     """
+    conditions = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
     cache = DesignCache()
     designs = []
     ranges = design_label_ranges(conditions)

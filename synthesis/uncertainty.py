@@ -89,3 +89,11 @@ def matched_disturbance(vehicle: VehicleParams, stiffness, nominal_stiffness, sp
 def stiffness_grid(lo: float, hi: float, points: int) -> np.ndarray:
     """Uniform grid over [lo, hi] including both ends."""
     return np.linspace(lo, hi, max(int(points), 2))
+
+
+def output_equivalent_row(nominal: NominalModel) -> np.ndarray:
+    """``r = c' A_m^-1 / (c' A_m^-1 b_m)`` (4,): ``r b_m = 1``; the piecewise-constant law feeds
+    the filter ``r sigma_hat``, the input with the same steady-state e1 as the 4-vector
+    estimate (Hovakimyan & Cao sec. 3.3 at DC; the controller's own copy is in systems)."""
+    c_ainv = np.linalg.solve(nominal.a_m.T, E1_SELECTOR)
+    return c_ainv / float(c_ainv @ nominal.b_m)

@@ -13,8 +13,10 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
 * ``steady_state_offset``: the adaptive equilibrium by eliminating ``u_ad`` (plant solve,
   then the gradient-law condition), with the feedforward from the bordered nominal
   equilibrium and ``P_ad`` from a Kronecker-product solve; dense C grid.
-* ``grip``: slip angles from the steady-state single-track force and moment balance, solved
-  for (side velocity, steering) at yaw rate V / R.
+* ``grip``: axle forces from the steady-state force and moment balance, each axle's share
+  of its grip inverted through the Fiala force by bisection; the certified interval's lower
+  end recomputed as the Fiala force over ``C tan a`` at the slip bound. Every condition is
+  checked on that certified (tire-widened) interval.
 * consistency: ``speed <= gain_speed_max``, ``0 < k <= k_bar``, ``C_hat`` the midpoint, and
   (when the file holds the conditions) interval = hull and mu_lo = least friction of the labels;
   stored margins may not overstate the recomputed ones.
@@ -38,6 +40,7 @@ CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
 CONSISTENCY = "consistency"
 NO_SAFE_SPEED_CLAIM = "no_safe_speed_claim"
 MARGIN_CLAIM = "margin_claim"
+INPUT_MISMATCH = "reference_inputs"  # embedded vehicle/settings/conditions differ from the given
 GAIN_LMI = "gain_lmi"
 
 DENSE_STIFFNESS_POINTS = 21
@@ -66,15 +69,28 @@ class DesignVerification:
 
 @dataclasses.dataclass
 class VerificationReport:
+    """Per-design checks, and mismatches between the file's embedded inputs and reference files.
+
+    ``checked_against``: ``"embedded"`` when the file's own vehicle, settings and conditions
+    were used, else the names of the reference inputs given (e.g. ``"settings, vehicle"``).
+    """
+
     designs: list[DesignVerification]
+    input_failures: list[tuple[str, str]] = dataclasses.field(default_factory=list)
+    checked_against: str = "embedded"
 
     @property
     def ok(self) -> bool:
-        return all(d.ok for d in self.designs)
+        return not self.input_failures and all(d.ok for d in self.designs)
 
     @property
     def first_failure(self):
-        """``(design index, labels, condition, message)`` of the first failure, or None."""
+        """``(design index, labels, condition, message)`` of the first failure, or None.
+
+        A mismatch of the embedded inputs comes first, with index ``None``.
+        """
+        if self.input_failures:
+            return (None, [], *self.input_failures[0])
         for d in self.designs:
             if d.failures:
                 return (d.index, d.labels, *d.failures[0])
@@ -156,7 +172,7 @@ def gain_decay_margin(vehicle, design, settings) -> float:
     v_lo = settings.synthesis.speed_min_mps
     v_hi = max(design.gain_speed_max_mps, v_lo)
     mats = []
-    for c in _dense(*design.interval, DENSE_STIFFNESS_POINTS):
+    for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS):
         for v in _dense(v_lo, v_hi, DENSE_SPEED_POINTS):
             a, b, _ = lateral_error_dynamics(vehicle, c, v)
             mats.append(a - np.outer(b, k_m))
@@ -182,14 +198,33 @@ def _theta(vehicle, design, stiffness, speed):
     return theta.reshape(4)
 
 
+def _output_row(a_m, b_m) -> np.ndarray:
+    """Row r with ``r b_m = 1`` and ``r v`` the input with v's steady-state e1 (by lstsq)."""
+    x, *_ = np.linalg.lstsq(a_m.T, np.eye(4)[0], rcond=None)  # x' = e1' A_m^-1
+    return x / float(x @ b_m)
+
+
+def _filter_row(vehicle, design, stiffness, speed) -> np.ndarray:
+    """What the filter sees per unit state, for the design's certified law.
+
+    Gradient: ``theta``. Piecewise-constant: ``r`` applied to the whole state uncertainty
+    ``A(C) - b(C) k_m - A_m`` (matched and unmatched; ``r b_m = 1``).
+    """
+    if design.certified_law == "gradient":
+        return _theta(vehicle, design, stiffness, speed)
+    a_m, b_m, _, _ = _nominal(vehicle, design, speed)
+    a, b, _ = lateral_error_dynamics(vehicle, stiffness, speed)
+    return _output_row(a_m, b_m) @ (a - np.outer(b, design.k_m_array) - a_m)
+
+
 def l1_condition_value(vehicle, design, speed) -> float:
     """``max_w ||G_w||_L1 * max_C ||theta||_1`` on dense grids (must be < 1)."""
     a_m, b_m, _, _ = _nominal(vehicle, design, speed)
     k = design.filter_gain
     bound = max(np.abs(_theta(vehicle, design, c, speed)).sum()
-                for c in _dense(*design.interval, DENSE_STIFFNESS_POINTS))
+                for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS))
     worst = 0.0
-    for c in _dense(*design.interval, DENSE_W_POINTS):
+    for c in _dense(*design.certified_interval, DENSE_W_POINTS):
         w = c / design.nominal_stiffness_n_per_rad
         a = np.zeros((5, 5))
         a[:4, :4] = a_m
@@ -206,13 +241,13 @@ def reference_abscissas(vehicle, design, speeds) -> np.ndarray:
     for v in speeds:
         a_m, b_m, _, _ = _nominal(vehicle, design, v)
         mats = []
-        for c in _dense(*design.interval, DENSE_STIFFNESS_POINTS):
+        for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS):
             a, b, _ = lateral_error_dynamics(vehicle, c, v)
             w = c / design.nominal_stiffness_n_per_rad
             m = np.zeros((5, 5))
             m[:4, :4] = a - np.outer(b, design.k_m_array)
             m[:4, 4] = b
-            m[4, :4] = -k * _theta(vehicle, design, c, v)
+            m[4, :4] = -k * _filter_row(vehicle, design, c, v)
             m[4, 4] = -k * w
             mats.append(m)
         out.append(np.linalg.eigvals(np.array(mats)).real.max())
@@ -228,7 +263,12 @@ def _lyapunov_by_kronecker(a_m: np.ndarray, q: np.ndarray) -> np.ndarray:
 
 
 def equilibrium_offset_m(vehicle, design, settings, stiffness, speed) -> float:
-    """e1 (m) at the adaptive equilibrium on the design curvature, by elimination of u_ad."""
+    """e1 (m) at the adaptive equilibrium on the design curvature, by elimination of u_ad.
+
+    The condition closing the equations depends on the certified law: the gradient law rests
+    where ``s_tilde' P_ad b_m = 0``; the piecewise-constant law's filter where ``u_ad`` cancels
+    the output-equivalent of the whole uncertainty.
+    """
     radius = settings.synthesis.design_radius_m
     psidot = speed / radius
     a_m, b_m, g_hat, _ = _nominal(vehicle, design, speed)
@@ -244,13 +284,25 @@ def equilibrium_offset_m(vehicle, design, settings, stiffness, speed) -> float:
     a_cl = a - np.outer(b, design.k_m_array)
     s0 = -np.linalg.solve(a_cl, b * u_ff + g * psidot)  # plant rest with u_ad = 0
     s1 = -np.linalg.solve(a_cl, b)  # d s / d u_ad
-    u_ad = float(p_b @ (s_hat - s0)) / float(p_b @ s1)  # s_tilde' P_ad b_m = 0
+    if design.certified_law == "gradient":
+        u_ad = float(p_b @ (s_hat - s0)) / float(p_b @ s1)  # s_tilde' P_ad b_m = 0
+    else:  # piecewise constant, ideal estimate: u_ad + r sigma(s, u_ad) = 0
+        r = _output_row(a_m, b_m)
+        w = stiffness / design.nominal_stiffness_n_per_rad
+
+        def residual(u):
+            s_u = s0 + s1 * u
+            sigma = (a_cl - a_m) @ s_u + (w - 1.0) * b_m * (u + u_ff) + (g - g_hat) * psidot
+            return u + float(r @ sigma)
+
+        r0 = residual(0.0)
+        u_ad = -r0 / (residual(1.0) - r0)  # the residual is affine in u_ad
     return float((s0 + s1 * u_ad)[0])
 
 
 def offset_margin_m(vehicle, design, settings, speed) -> float:
     worst = max(abs(equilibrium_offset_m(vehicle, design, settings, c, speed))
-                for c in _dense(*design.interval, DENSE_STIFFNESS_POINTS))
+                for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS))
     return vehicle.lane_margin_m - worst
 
 
@@ -272,11 +324,54 @@ def cornering_slip_angles(vehicle: VehicleParams, stiffness, speed, radius):
     return delta - (vy + lf * r) / speed, -(vy - lr * r) / speed
 
 
+def fiala_utilisation(z: float) -> float:
+    """Share of the grip ``|F| / (mu F_z)`` the Fiala brush tire uses at normalised slip z."""
+    z = min(abs(z), 1.0)
+    return 3.0 * z - 3.0 * z * z + z**3
+
+
+def normalised_slip_for_utilisation(utilisation: float) -> float:
+    """Inverse of :func:`fiala_utilisation` on ``[0, 1]`` by bisection (60 halvings)."""
+    if utilisation >= 1.0:
+        return 1.0
+    lo, hi = 0.0, 1.0
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        lo, hi = (mid, hi) if fiala_utilisation(mid) < utilisation else (lo, mid)
+    return 0.5 * (lo + hi)
+
+
+def cornering_normalised_slip(vehicle: VehicleParams, friction_mu, speed, radius) -> float:
+    """Largest normalised tire slip in a steady turn, from the axle force and moment balance.
+
+    Axle forces from ``F_f + F_r = m V^2 / R`` and ``l_f F_f = l_r F_r`` (solved as a 2 x 2
+    system), axle loads from the static moment balance, then each axle's utilisation
+    ``F / (mu F_z,axle)`` inverted through the Fiala force by bisection.
+    """
+    m, lf, lr = vehicle.mass_kg, vehicle.lf_m, vehicle.lr_m
+    f_f, f_r = np.linalg.solve(np.array([[1.0, 1.0], [lf, -lr]]),
+                               np.array([m * speed**2 / radius, 0.0]))
+    weight = m * GRAVITY_MPS2
+    load_f, load_r = weight * lr / (lf + lr), weight * lf / (lf + lr)  # per axle
+    return max(normalised_slip_for_utilisation(abs(f) / (friction_mu * load))
+               for f, load in ((f_f, load_f), (f_r, load_r)))
+
+
+def secant_stiffness_ratio(normalised_slip: float) -> float:
+    """``F / (C tan a)`` of the Fiala tire at normalised slip z, from the force itself."""
+    if normalised_slip == 0.0:
+        return 1.0
+    mu_fz, stiffness = 1.0, 1.0  # the ratio does not depend on them
+    tan_a = 3.0 * normalised_slip * mu_fz / stiffness
+    return mu_fz * fiala_utilisation(normalised_slip) / (stiffness * tan_a)
+
+
 def grip_margin_values(vehicle, design, settings, speed) -> tuple[float, float]:
+    """``(z_b - steady normalised slip, fraction mu_lo g - V^2 / R)`` on the design curve."""
     syn = settings.synthesis
     radius = syn.design_radius_m
-    af, ar = cornering_slip_angles(vehicle, design.stiffness_lo_n_per_rad, speed, radius)
-    slip = syn.slip_angle_max_rad - max(abs(af), abs(ar))
+    z = cornering_normalised_slip(vehicle, design.friction_mu_lo, speed, radius)
+    slip = design.tire_slip_bound - z
     accel = syn.lateral_accel_fraction * design.friction_mu_lo * GRAVITY_MPS2 - speed**2 / radius
     return float(slip), float(accel)
 
@@ -286,10 +381,21 @@ def grip_margin_values(vehicle, design, settings, speed) -> tuple[float, float]:
 def _consistency_failures(design, settings, conditions) -> list[tuple[str, str]]:
     syn = settings.synthesis
     out = []
-    mid = 0.5 * (design.stiffness_lo_n_per_rad + design.stiffness_hi_n_per_rad)
+    if design.certified_law != settings.controller.adaptation_law:
+        out.append((CONSISTENCY, f"certified for the {design.certified_law} law but the "
+                                 f"settings run {settings.controller.adaptation_law}"))
+    if not 0.0 <= design.tire_slip_bound <= syn.normalised_slip_max:
+        out.append((CONSISTENCY, f"tire slip bound {design.tire_slip_bound} not in [0, "
+                                 f"normalised_slip_max {syn.normalised_slip_max}]"))
+    tire_lo = design.stiffness_lo_n_per_rad * secant_stiffness_ratio(design.tire_slip_bound)
+    if abs(design.certified_interval[0] - tire_lo) > 1e-9 * tire_lo:
+        out.append((CONSISTENCY, f"certified lower stiffness {design.certified_interval[0]} is "
+                                 f"not the Fiala secant stiffness {tire_lo:.6g} of C_lo at the "
+                                 f"slip bound {design.tire_slip_bound}"))
+    mid = 0.5 * (design.certified_interval[0] + design.certified_interval[1])
     if abs(design.nominal_stiffness_n_per_rad - mid) > 1e-9 * mid:
         out.append((CONSISTENCY, f"nominal stiffness {design.nominal_stiffness_n_per_rad} is "
-                                 f"not the interval midpoint {mid}"))
+                                 f"not the certified interval's midpoint {mid}"))
     if not 0.0 < design.filter_gain <= syn.filter_gain_max:
         out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, "
                                  f"{syn.filter_gain_max}]"))
@@ -340,7 +446,7 @@ def _conditions_at(vehicle, design, settings, speed):
             lambda: -reference_abscissas(vehicle, design, speeds).max()),
         "steady_state_offset_m": _guarded(
             lambda: offset_margin_m(vehicle, design, settings, speed)),
-        "grip_slip_angle_rad": slip,
+        "grip_normalised_slip": slip,
         "grip_lateral_accel_mps2": accel,
     }
 
@@ -356,9 +462,10 @@ def _condition_failures(margins, speed) -> list[tuple[str, str]]:
     if margins["steady_state_offset_m"] < 0.0:
         out.append(("steady_state_offset", "steady-state offset exceeds the lane margin by "
                     f"{-margins['steady_state_offset_m']:.4g} m at {speed:.4g} m/s"))
-    if margins["grip_slip_angle_rad"] < -1e-12:
-        out.append(("grip", f"slip angle exceeds the limit by {-margins['grip_slip_angle_rad']:.4g}"
-                            f" rad at {speed:.4g} m/s"))
+    if margins["grip_normalised_slip"] < -1e-12:
+        out.append(("grip", "tire slip exceeds the bound by "
+                            f"{-margins['grip_normalised_slip']:.4g} (normalised) at "
+                            f"{speed:.4g} m/s"))
     if margins["grip_lateral_accel_mps2"] < -1e-12:
         out.append(("grip", "lateral acceleration exceeds the friction limit by "
                     f"{-margins['grip_lateral_accel_mps2']:.4g} m/s^2 at {speed:.4g} m/s"))
@@ -380,6 +487,8 @@ def verify_design(design: ControllerDesign, vehicle: VehicleParams, settings: Se
                   conditions: ConditionsTable | None = None, index: int = 0) -> DesignVerification:
     """Recompute every claim of one design (module docstring)."""
     syn = settings.synthesis
+    if conditions is not None:  # the vehicle's tires scale the table's stiffness
+        conditions = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
     failures = _consistency_failures(design, settings, conditions)
     margins: dict = {}
     if design.failed_condition == GAIN_LMI and design.speed_mps == 0.0:
@@ -419,17 +528,85 @@ def _no_safe_speed_failures(vehicle, design, settings, margins) -> list[tuple[st
         l1 = _guarded(lambda v=v: 1.0 - l1_condition_value(vehicle, design, v))
         if l1 > 0.0:
             margins.update({"l1_condition": l1, "reference_stability_per_s": -float(abscissa),
-                            "grip_slip_angle_rad": slip, "grip_lateral_accel_mps2": accel})
+                            "grip_normalised_slip": slip, "grip_lateral_accel_mps2": accel})
             return [(NO_SAFE_SPEED_CLAIM, f"claims no safe speed ({design.failed_condition}) "
                                           f"but every condition holds at {v:.4g} m/s")]
     return []
 
 
-def verify_design_table(table: DesignTable, progress=None) -> VerificationReport:
-    """Verify every design of a loaded file; ``progress(i, n)`` is called per design."""
+def _differences(embedded, reference, path: str) -> list[str]:
+    """Paths (``settings.synthesis.design_radius_m``) where two plain structures differ."""
+    if isinstance(embedded, dict) and isinstance(reference, dict):
+        out = []
+        for key in list(reference) + [k for k in embedded if k not in reference]:
+            if key not in embedded or key not in reference:
+                out.append(f"{path}.{key}")
+            else:
+                out += _differences(embedded[key], reference[key], f"{path}.{key}")
+        return out
+    if isinstance(embedded, list) and isinstance(reference, list):
+        if len(embedded) != len(reference):
+            return [path]
+        return [d for i, (a, b) in enumerate(zip(embedded, reference, strict=True))
+                for d in _differences(a, b, f"{path}[{i}]")]
+    return [] if embedded == reference else [path]
+
+
+def _lookup(data, path: str):
+    for part in path.replace("[", ".[").split(".")[1:]:
+        if part.startswith("["):
+            data = data[int(part[1:-1])]
+        else:
+            data = data.get(part, "(absent)") if isinstance(data, dict) else "(absent)"
+    return data
+
+
+def reference_input_failures(table: DesignTable, vehicle: VehicleParams | None = None,
+                             settings: Settings | None = None,
+                             conditions: ConditionsTable | None = None
+                             ) -> list[tuple[str, str]]:
+    """``(INPUT_MISMATCH, message)`` for each given reference that the file's copy differs from.
+
+    The message names the first differing field (``settings.synthesis.lateral_accel_fraction``)
+    with both values. A file without embedded conditions fails when conditions are given.
+    """
+    out = []
+    for name, embedded, reference in (("vehicle", table.vehicle, vehicle),
+                                      ("settings", table.settings, settings),
+                                      ("conditions", table.conditions, conditions)):
+        if reference is None:
+            continue
+        if embedded is None:
+            out.append((INPUT_MISMATCH, f"the file embeds no {name}; --{name} was given"))
+            continue
+        ref, emb = dataclasses.asdict(reference), dataclasses.asdict(embedded)
+        diffs = _differences(emb, ref, name)
+        if diffs:
+            out.append((INPUT_MISMATCH, f"embedded {diffs[0]} = {_lookup(emb, diffs[0])!r} differs "
+                                        f"from the reference {_lookup(ref, diffs[0])!r}"
+                        + (f" (and {len(diffs) - 1} more)" if len(diffs) > 1 else "")))
+    return out
+
+
+def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehicleParams | None = None,
+                        settings: Settings | None = None,
+                        conditions: ConditionsTable | None = None) -> VerificationReport:
+    """Verify every design of a loaded file; ``progress(i, n)`` is called per design.
+
+    Reference inputs (``vehicle``, ``settings``, ``conditions``), when given, must equal the
+    copies the file embeds (else :data:`INPUT_MISMATCH` failures naming the field), and every
+    condition is recomputed with them; without them the file's own copies are used, which
+    only shows the file is self-consistent (``report.checked_against == "embedded"``).
+    """
+    given = [n for n, x in (("vehicle", vehicle), ("settings", settings),
+                            ("conditions", conditions)) if x is not None]
+    input_failures = reference_input_failures(table, vehicle, settings, conditions)
+    vehicle = vehicle if vehicle is not None else table.vehicle
+    settings = settings if settings is not None else table.settings
+    conditions = conditions if conditions is not None else table.conditions
     out = []
     for i, design in enumerate(table.designs):
         if progress is not None:
             progress(i, len(table.designs))
-        out.append(verify_design(design, table.vehicle, table.settings, table.conditions, i))
-    return VerificationReport(out)
+        out.append(verify_design(design, vehicle, settings, conditions, i))
+    return VerificationReport(out, input_failures, ", ".join(given) or "embedded")

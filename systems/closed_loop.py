@@ -6,14 +6,20 @@
                                         state <------------------------------------------+
 Loggers (``LogVectorOutput``, one sample per tape period) record the plant state, the
 saturated steering and the curvature. ``simulate`` builds the diagram, sets the initial
-state, advances and returns a :class:`Tape` (Drake tutorial style).
+state, advances and returns a :class:`Tape` (Drake tutorial style). A simulator monitor
+(``Simulator.set_monitor``) ends an episode once the car is off the road (|e1| > ``OFF_ROAD_M``).
 """
 
 import dataclasses
 
 import numpy as np
-from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
-from pydrake.systems.framework import Diagram, DiagramBuilder
+from pydrake.systems.analysis import (
+    ApplySimulatorConfig,
+    Simulator,
+    SimulatorConfig,
+    SimulatorStatus,
+)
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import (
     ConstantVectorSource,
     LogVectorOutput,
@@ -21,6 +27,7 @@ from pydrake.systems.primitives import (
     TrajectorySource,
 )
 
+from drake_cert import metrics
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
@@ -36,7 +43,6 @@ from systems.road import Road
 
 PLANTS = ("nonlinear", "linear", "linear_sampled")
 OFF_ROAD_M = 5.0  # |e1| (m) at which an episode stops: the car has left its lane for good
-CHECK_PERIOD_S = 0.5  # how often simulate looks for an off-road car (s)
 
 
 @dataclasses.dataclass
@@ -53,11 +59,19 @@ class Tape:
     friction_mu: float
     plant: str
     law: str
+    simulated_s: float = float("nan")  # simulated time at the end of the episode (s)
+    stopped_early: bool = False  # True when the off-road monitor ended the episode
 
     @property
     def lateral_offset_m(self) -> np.ndarray:
         """e1(t) (m), > 0 left of the lane centre."""
         return self.states[:, 0]
+
+    @property
+    def time_left_lane_s(self) -> float | None:
+        """First time |e1| exceeded the lane margin (s), interpolated linearly between tape
+        samples; None if the car stayed in its lane (see :func:`metrics.time_left_lane`)."""
+        return metrics.time_left_lane(self)
 
 
 @dataclasses.dataclass
@@ -99,7 +113,8 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
     controller_class = L1AdaptiveControllerReference if reference_controller else \
         L1AdaptiveController
     controller = builder.AddSystem(controller_class(
-        vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps, law=law))
+        vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps, law=law,
+        e2dot_from_yaw_rate=plant == "nonlinear"))  # eq. 2.45's e2dot does not jump (l1_law)
     if plant == "nonlinear":
         plant_sys = builder.AddSystem(NonlinearLateralPlant(vehicle))
     elif plant == "linear":
@@ -163,34 +178,67 @@ def simulate(*, vehicle: VehicleParams, design: ControllerDesign, settings: Sett
 
     ``initial_state`` is s(0) = [e1, e1dot, e2, e2dot] (default zeros: on the lane centre);
     the controller's predictor starts at s(0). ``config`` overrides :func:`simulator_config`.
-    The episode ends early once |e1| > ``OFF_ROAD_M`` (checked every ``CHECK_PERIOD_S``):
-    the car has then left its lane, and the road frame (Frenet coordinates about a curve of
-    radius R) stops making sense as |e1| approaches R.
+    The episode ends early once |e1| > ``OFF_ROAD_M`` (a simulator monitor checks after every
+    integration step and returns ``EventStatus.ReachedTermination``): the car has then left
+    its lane, and the road frame (Frenet coordinates about a curve of radius R) stops making
+    sense as |e1| approaches R. The tape then ends at the last tape sample before the stop,
+    ``tape.stopped_early`` is True and ``tape.simulated_s`` is the time of the stop; its peak
+    |e1| is the peak up to the stop (about ``OFF_ROAD_M``), so report
+    ``tape.time_left_lane_s`` for such a run. Raises :class:`ConfigError` for an
+    ``initial_state`` that is not 4 finite numbers.
     """
     law = law or settings.controller.adaptation_law
+    s0 = initial_error_state(initial_state)
     loop = build_closed_loop(vehicle=vehicle, design=design, settings=settings,
                              stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
                              speed_mps=speed_mps, road=road, plant=plant, law=law,
                              t_final_s=t_final_s, tape_period_s=tape_period_s,
                              reference_controller=reference_controller)
-    s0 = np.zeros(4) if initial_state is None else np.asarray(initial_state, float).reshape(4)
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(config or simulator_config(settings, law), simulator)
     context = simulator.get_mutable_context()
-    set_plant_state(loop, context, s0, speed_mps, float(road.curvature_at(0.0)))
-    loop.controller.set_initial_state(context, s0)
+    kappa0 = float(road.curvature_at(0.0))
+    set_plant_state(loop, context, s0, speed_mps, kappa0)
+    loop.controller.set_initial_state(context, s0, kappa0)
+    simulator.set_monitor(off_road_monitor(loop))
     simulator.Initialize()
-    state_port = loop.plant.GetOutputPort("state")
-    plant_context = loop.plant.GetMyContextFromRoot(context)
-    t = 0.0
-    while t < t_final_s:
-        t = min(t + CHECK_PERIOD_S, t_final_s)
-        simulator.AdvanceTo(t)
-        if abs(state_port.Eval(plant_context)[0]) > OFF_ROAD_M:
-            break
-    return tape_from_loggers(loop, context, vehicle=vehicle, speed_mps=speed_mps,
+    status = simulator.AdvanceTo(t_final_s)
+    stopped = status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition
+    tape = tape_from_loggers(loop, context, vehicle=vehicle, speed_mps=speed_mps,
                              stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
                              law=law)
+    tape.simulated_s = float(context.get_time())
+    tape.stopped_early = bool(stopped)
+    return tape
+
+
+def initial_error_state(initial_state) -> np.ndarray:
+    """s(0) as a float array of shape (4,) (zeros for None); ConfigError for anything else."""
+    if initial_state is None:
+        return np.zeros(4)
+    try:
+        s0 = np.asarray(initial_state, dtype=float)
+    except (TypeError, ValueError):
+        raise ConfigError(f"initial_state = {initial_state!r} must be 4 numbers "
+                          "[e1 (m), e1dot (m/s), e2 (rad), e2dot (rad/s)]") from None
+    if s0.shape != (4,) or not np.all(np.isfinite(s0)):
+        raise ConfigError(f"initial_state = {initial_state!r} (shape {s0.shape}) must be 4 "
+                          "finite numbers [e1 (m), e1dot (m/s), e2 (rad), e2dot (rad/s)]")
+    return s0
+
+
+def off_road_monitor(loop: ClosedLoop):
+    """A ``Simulator`` monitor that ends the episode once |e1| > ``OFF_ROAD_M``."""
+    state_port = loop.plant.GetOutputPort("state")
+
+    def monitor(root_context):
+        e1 = state_port.Eval(loop.plant.GetMyContextFromRoot(root_context))[0]
+        if abs(e1) > OFF_ROAD_M:
+            return EventStatus.ReachedTermination(
+                loop.diagram, f"off the road: |e1| = {abs(e1):.2f} m > {OFF_ROAD_M} m")
+        return EventStatus.Succeeded()
+
+    return monitor
 
 
 def set_plant_state(loop: ClosedLoop, context, s0, speed_mps: float, curvature: float) -> None:

@@ -10,13 +10,6 @@ import pydrake.math as dmath
 import pydrake.symbolic as sym
 
 
-def is_symbolic(x) -> bool:
-    """True for a ``pydrake.symbolic`` Variable, Expression or Formula (or an array of them)."""
-    if isinstance(x, np.ndarray):
-        return x.dtype == object
-    return isinstance(x, (sym.Variable, sym.Expression, sym.Formula))
-
-
 def where(condition, if_true, if_false):
     """``if_true`` when ``condition`` holds else ``if_false`` (``if_then_else`` for symbolic)."""
     if isinstance(condition, (bool, np.bool_)):

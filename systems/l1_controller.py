@@ -68,10 +68,13 @@ class L1AdaptiveController(Diagram):
     ``law`` is "piecewise_constant" (sampled at settings.controller.sample_period_s) or
     "gradient" (Gamma = settings.controller.adaptation_gain, projection operator); None
     takes settings.controller.adaptation_law. ``parameters`` holds the derived numbers.
+    ``e2dot_from_yaw_rate`` (default True: a vehicle, the Fiala plant) says the measured e2dot
+    jumps with the curvature; False for the linear plants (:func:`l1_law.l1_parameters`).
     """
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                 speed_mps: float, law: str | None = None):
+                 speed_mps: float, law: str | None = None,
+                 e2dot_from_yaw_rate: bool = True):
         super().__init__()
         law = law or settings.controller.adaptation_law
         if law not in l1_law.LAWS:
@@ -79,7 +82,8 @@ class L1AdaptiveController(Diagram):
         if not speed_mps > 0:
             raise ConfigError(f"speed_mps = {speed_mps!r} must be positive")
         self.law = law
-        self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps)
+        self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps,
+                                                  e2dot_from_yaw_rate)
         builder = DiagramBuilder()
         if law == "gradient":
             core = gradient_law_system(self.parameters)
@@ -94,19 +98,19 @@ class L1AdaptiveController(Diagram):
         builder.BuildInto(self)
         self.set_name("l1_adaptive_controller")
 
-    def initial_state(self, s0) -> np.ndarray:
+    def initial_state(self, s0, curvature: float = 0.0) -> np.ndarray:
         """Controller state for plant state s0: predictor at s0, estimates at their centres."""
         if self.law == "gradient":
-            return l1_law.gradient_initial_state(self.parameters, s0)
-        return l1_law.piecewise_constant_initial_state(s0)
+            return l1_law.gradient_initial_state(self.parameters, s0, curvature)
+        return l1_law.piecewise_constant_initial_state(s0, self.parameters, curvature)
 
-    def set_initial_state(self, context: Context, s0) -> None:
+    def set_initial_state(self, context: Context, s0, curvature: float = 0.0) -> None:
         """Write :meth:`initial_state` into this controller's (sub)context."""
         sub = self._core.GetMyMutableContextFromRoot(context)
         if self.law == "gradient":
-            sub.SetContinuousState(self.initial_state(s0))
+            sub.SetContinuousState(self.initial_state(s0, curvature))
         else:
-            sub.SetDiscreteState(self.initial_state(s0))
+            sub.SetDiscreteState(self.initial_state(s0, curvature))
 
     def core(self):
         """The system holding the controller state (SymbolicVectorSystem or AffineSystem)."""

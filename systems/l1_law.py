@@ -9,6 +9,16 @@ C++-evaluated systems of :mod:`systems.l1_controller`. Symbols follow the paper:
   s_hat' = A_m s_hat + b_m (w_hat u_ad + theta_hat' s + sigma_hat + u_ff) + g_hat psidot_des
   eta    = w_hat u_ad + theta_hat' s + sigma_hat,     u_ad = -k D(s) (eta - k_g r), D = 1/s, r = 0
 
+Curvature changes: the measured ``e2dot = r - V kappa`` jumps by ``-V dkappa`` when kappa
+steps (the yaw rate r cannot), while eq. 2.45 has no such term. Both laws therefore keep
+their predictor in the coordinates ``q = s + V kappa e4 = [e1, e1dot, e2, r]``, which do not
+jump, and compare ``s_hat = q_hat - V kappa e4`` with the measurement, kappa the current
+curvature (:func:`predicted_measurement`; ``L1Parameters.measured_curvature_gain`` = V, or 0
+for the linear plants, whose eq. 2.45 state e2dot does not jump). Without it the prediction
+error jumps by ``V dkappa`` (0.38 rad/s at V = 19, R = 50), the piecewise-constant estimate
+by that over T_s, and on the Fiala plant the steering saturated at 0.5 rad for 0.2-3 s
+after a step from straight to R = 50 m (steady 0.07 rad). At constant kappa the laws are unchanged.
+
 Two adaptation laws: the continuous gradient law with Gamma and the projection operator
 (:func:`gradient_law`), and the piecewise-constant law sampled at T_s
 (:func:`piecewise_constant_update`), whose 4-vector estimate covers matched and unmatched
@@ -59,29 +69,39 @@ class L1Parameters:
     w_centre: float  # centre of the input-gain set [w_l, w_u], w = C / C_hat
     w_radius: float  # (w_u - w_l) / 2
     theta_max: float  # radius of the ball holding theta (rad per state unit)
-    sigma_max: float  # bound on |sigma| (rad) at the design curvature
+    sigma_max: float  # bound on |sigma| (rad) at the largest curvature, 1 / min_radius_m
     projection_epsilon: float  # eps of the projection's convex function
     sample_period_s: float  # T_s of the piecewise-constant law
     pc_exp: np.ndarray  # (4, 4) e^{A_m T_s}
     pc_phi: np.ndarray  # (4, 4) Phi(T_s) = A_m^-1 (e^{A_m T_s} - I)
     pc_gain: np.ndarray  # (4, 4) -Phi(T_s)^-1 e^{A_m T_s}
     pc_output_inverse: np.ndarray  # (4,) c' A_m^-1 / (c' A_m^-1 b_m), a left inverse of b_m
+    # d(measured e2dot)/d(kappa) = -this (m/s): V when e2dot = r - V kappa is computed from the
+    # yaw rate (a vehicle, the Fiala plant); 0 for eq. 2.45 integrated as a state (linear plants)
+    measured_curvature_gain: float = 0.0
 
 
 def l1_parameters(vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                  speed_mps: float) -> L1Parameters:
-    """Controller numbers for ``design`` at speed V (DESIGN 4); sets are bound_factor x max."""
+                  speed_mps: float, e2dot_from_yaw_rate: bool = True) -> L1Parameters:
+    """Controller numbers for ``design`` at speed V (DESIGN 4); sets are bound_factor x max.
+
+    ``e2dot_from_yaw_rate``: the measured e2dot is ``r - V kappa`` and jumps with kappa (a
+    vehicle; the Fiala plant). False for the linear plants, which integrate eq. 2.45's e2dot
+    as a state (it does not jump); the predictor then ignores curvature changes.
+    """
     ctl, syn = settings.controller, settings.synthesis
     c_hat = design.nominal_stiffness_n_per_rad
-    c_lo, c_hi = design.interval
+    c_lo, c_hi = design.certified_interval  # label interval widened to the tire secant
     nom = nominal_model(vehicle, c_hat, speed_mps, design.k_m_array)
     p_ad = scipy.linalg.solve_continuous_lyapunov(nom.a_m.T, -np.diag(ctl.q_ad_diag))
     grid = stiffness_grid(c_lo, c_hi, syn.stiffness_grid_points)
     thetas = [matched_uncertainty(vehicle, c, c_hat, speed_mps, design.k_m_array)[1]
               for c in grid]
-    design_yaw_rate = speed_mps / syn.design_radius_m
+    # sigma is linear in psidot_des: its bound at the largest curvature the design admits
+    # (1 / controller.min_radius_m) holds for every road at most that curved
+    largest_yaw_rate = speed_mps / ctl.min_radius_m
     sigmas = [matched_disturbance(vehicle, c, c_hat, speed_mps, design.k_m_array,
-                                  design_yaw_rate) for c in grid]
+                                  largest_yaw_rate) for c in grid]
     t = ctl.sample_period_s
     e = scipy.linalg.expm(nom.a_m * t)
     phi = np.linalg.solve(nom.a_m, e - np.eye(4))
@@ -95,7 +115,8 @@ def l1_parameters(vehicle: VehicleParams, design: ControllerDesign, settings: Se
         sigma_max=max(ctl.bound_factor * max(abs(sg) for sg in sigmas), tiny),
         projection_epsilon=ctl.projection_epsilon, sample_period_s=t,
         pc_exp=e, pc_phi=phi, pc_gain=-np.linalg.solve(phi, e),
-        pc_output_inverse=output_equivalent_inverse(nom.a_m, nom.b_m))
+        pc_output_inverse=output_equivalent_inverse(nom.a_m, nom.b_m),
+        measured_curvature_gain=float(speed_mps) if e2dot_from_yaw_rate else 0.0)
 
 
 def output_equivalent_inverse(a_m: np.ndarray, b_m: np.ndarray) -> np.ndarray:
@@ -108,6 +129,24 @@ def output_equivalent_inverse(a_m: np.ndarray, b_m: np.ndarray) -> np.ndarray:
 
 
 # --------------------------------------------------------------------------- common parts
+
+YAW_RATE_ROW = np.array([0.0, 0.0, 0.0, 1.0])  # e4: s[3] = e2dot = r - V kappa
+
+
+def predicted_measurement(p: L1Parameters, q_hat, curvature):
+    """``s_hat = q_hat - V kappa e4``: the predictor's state ``q_hat = [e1, e1dot, e2, r]`` as
+    the measurement ``s = [e1, e1dot, e2, e2dot]`` at the current curvature kappa (1/m).
+
+    Only the fourth entry moves (``e2dot = r - psidot_des``, ``psidot_des = V kappa``): a step
+    in kappa steps the predicted e2dot exactly as it steps the measured one.
+    """
+    return np.asarray(q_hat) - gm.scaled(YAW_RATE_ROW, p.measured_curvature_gain * curvature)
+
+
+def predictor_memory(p: L1Parameters, s_hat, curvature):
+    """Inverse of :func:`predicted_measurement`: ``q_hat = s_hat + V kappa e4``."""
+    return np.asarray(s_hat) + gm.scaled(YAW_RATE_ROW, p.measured_curvature_gain * curvature)
+
 
 def curvature_feedforward(p: L1Parameters, curvature):
     """``u_ff = k_ff psidot_des`` with ``psidot_des = V kappa`` (rad)."""
@@ -188,8 +227,13 @@ def low_pass_filter_derivative(p: L1Parameters, eta_hat, reference=0.0):
 
 
 def gradient_controller_derivatives(p: L1Parameters, z, s, curvature):
-    """Time derivative of the gradient-law controller state ``[s_hat, w, theta, sigma, u_ad]``."""
-    s_hat, w_hat, theta_hat, sigma_hat, u_ad = unpack_gradient_state(z)
+    """Time derivative of the gradient-law controller state ``[q_hat, w, theta, sigma, u_ad]``.
+
+    ``q_hat`` is the predictor in jump-free coordinates (:func:`predicted_measurement`):
+    ``q_hat' = s_hat'`` with ``s_hat = q_hat - V kappa e4`` (kappa piecewise constant).
+    """
+    q_hat, w_hat, theta_hat, sigma_hat, u_ad = unpack_gradient_state(z)
+    s_hat = predicted_measurement(p, q_hat, curvature)
     s = np.asarray(s)
     s_hat_dot = predictor_derivative(p, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad, curvature)
     w_dot, theta_dot, sigma_dot = gradient_law(p, s_hat - s, s, w_hat, theta_hat, sigma_hat,
@@ -199,9 +243,11 @@ def gradient_controller_derivatives(p: L1Parameters, z, s, curvature):
     return np.concatenate([s_hat_dot, [w_dot], theta_dot, [sigma_dot], [u_ad_dot]])
 
 
-def gradient_initial_state(p: L1Parameters, s0) -> np.ndarray:
-    """Predictor at the plant's state, w_hat at its set's centre, theta = sigma = u_ad = 0."""
-    return np.concatenate([np.asarray(s0, float), [p.w_centre], np.zeros(4), [0.0], [0.0]])
+def gradient_initial_state(p: L1Parameters, s0, curvature: float = 0.0) -> np.ndarray:
+    """Predictor at the plant's state s0 (at curvature kappa), w_hat at its set's centre,
+    theta = sigma = u_ad = 0."""
+    q0 = predictor_memory(p, np.asarray(s0, float), float(curvature))
+    return np.concatenate([q0, [p.w_centre], np.zeros(4), [0.0], [0.0]])
 
 
 # --------------------------------------------------------------------------- piecewise constant
@@ -233,13 +279,19 @@ def compensated_estimate(p: L1Parameters, sigma_hat):
 def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature):
     """One sample of the piecewise-constant law: ``(s_hat, u_ad)`` for the next period.
 
+    The predictor argument and result are held in the jump-free coordinates
+    ``q_hat = s_hat + V kappa e4`` of the sample they belong to (:func:`predictor_memory`):
+    at t_k the prediction compared with s is ``q_hat - V kappa_k e4``, so a curvature step
+    between samples moves the prediction as it moves the measurement. At constant kappa this
+    is the law below in s coordinates.
+
     At t_k, with ``sigma_hat`` from the prediction error and ``eta = u_ad + eta_m``
     (:func:`compensated_estimate`): the filter ``u_ad' = -k eta`` is solved exactly over
     T_s with eta held (the new u_ad is applied over [t_k, t_k + T_s)), and the predictor
     ``s_hat' = A_m s_hat + b_m (u_ad + u_ff) + sigma_hat + g_hat psidot_des`` is solved
     exactly with its inputs held: ``s_hat(t_k+1) = e^{A_m T} s_hat + Phi(T)(...)``.
     """
-    s_hat = np.asarray(s_hat)
+    s_hat = predicted_measurement(p, s_hat, curvature)
     sigma_hat = piecewise_constant_estimate(p, s_hat - np.asarray(s))
     eta_matched = compensated_estimate(p, sigma_hat)
     decay = float(np.exp(-p.filter_gain * p.sample_period_s))
@@ -247,9 +299,14 @@ def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature):
     forcing = (gm.scaled(p.b_m, u_ad_next + curvature_feedforward(p, curvature)) + sigma_hat
                + gm.scaled(p.g_hat, p.speed_mps * curvature))
     s_hat_next = gm.matvec(p.pc_exp, s_hat) + gm.matvec(p.pc_phi, forcing)
-    return s_hat_next, u_ad_next
+    return predictor_memory(p, s_hat_next, curvature), u_ad_next
 
 
-def piecewise_constant_initial_state(s0) -> np.ndarray:
-    """Predictor at the plant's state, u_ad = 0: ``[s_hat, u_ad]``."""
-    return np.concatenate([np.asarray(s0, float), [0.0]])
+def piecewise_constant_initial_state(s0, p: L1Parameters | None = None,
+                                     curvature: float = 0.0) -> np.ndarray:
+    """Predictor at the plant's state s0 (at curvature kappa; needs ``p`` when kappa != 0),
+    u_ad = 0: ``[q_hat, u_ad]``, ``q_hat = s0 + V kappa e4``."""
+    s0 = np.asarray(s0, float)
+    if curvature != 0.0:
+        s0 = predictor_memory(p, s0, float(curvature))
+    return np.concatenate([s0, [0.0]])

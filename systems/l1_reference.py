@@ -18,13 +18,15 @@ class L1AdaptiveControllerReference(LeafSystem):
     """L1 adaptive lateral controller, Python reference (see :mod:`systems.l1_controller`)."""
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                 speed_mps: float, law: str | None = None):
+                 speed_mps: float, law: str | None = None,
+                 e2dot_from_yaw_rate: bool = True):
         super().__init__()
         self.law = law or settings.controller.adaptation_law
         if self.law not in l1_law.LAWS:
             raise ConfigError(f"unknown adaptation law {self.law!r}; expected one of "
                               f"{l1_law.LAWS}")
-        self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps)
+        self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps,
+                                                  e2dot_from_yaw_rate)
         self._s = self.DeclareVectorInputPort("state", 4)  # s = [e1, e1dot, e2, e2dot]
         self._kappa = self.DeclareVectorInputPort("curvature_per_m", 1)  # 1/m
         if self.law == "gradient":
@@ -66,16 +68,16 @@ class L1AdaptiveControllerReference(LeafSystem):
         u_ad = context.get_discrete_state(self._z).GetAtIndex(4)
         output.SetAtIndex(0, l1_law.steering_command(self.parameters, s, u_ad, kappa))
 
-    def initial_state(self, s0) -> np.ndarray:
+    def initial_state(self, s0, curvature: float = 0.0) -> np.ndarray:
         """Predictor at s0, estimates at their centres (as the fast controller)."""
         if self.law == "gradient":
-            return l1_law.gradient_initial_state(self.parameters, s0)
-        return l1_law.piecewise_constant_initial_state(s0)
+            return l1_law.gradient_initial_state(self.parameters, s0, curvature)
+        return l1_law.piecewise_constant_initial_state(s0, self.parameters, curvature)
 
-    def set_initial_state(self, context, s0) -> None:
+    def set_initial_state(self, context, s0, curvature: float = 0.0) -> None:
         """Write :meth:`initial_state` into this system's context within the root ``context``."""
         mine = self.GetMyMutableContextFromRoot(context)
         if self.law == "gradient":
-            mine.SetContinuousState(self.initial_state(s0))
+            mine.SetContinuousState(self.initial_state(s0, curvature))
         else:
-            mine.SetDiscreteState(self.initial_state(s0))
+            mine.SetDiscreteState(self.initial_state(s0, curvature))

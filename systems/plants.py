@@ -4,7 +4,8 @@ Input ports (each of size 1):
   ``steering_rad``         front steering angle u (rad, > 0 left), after the Saturation
   ``stiffness_n_per_rad``  true cornering stiffness C of ONE tire (N/rad)
   ``friction_mu``          tire-road friction coefficient mu (-); only the nonlinear plant uses it
-  ``speed_mps``            constant forward speed V (m/s, > 0)
+  ``speed_mps``            forward speed V (m/s, >= 0), may vary in time; below the plant's
+                           stop speed (default 5 m/s, DESIGN 2) the lateral dynamics are frozen
   ``curvature_per_m``      road curvature kappa (1/m, > 0 left turn)
 Output port:
   ``state``  s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s): lateral offset from the lane
@@ -26,10 +27,26 @@ from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVector
 
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
+from drake_cert.errors import ConfigError
 from systems import generic_math as gm
 
 PLANT_INPUTS = ("steering_rad", "stiffness_n_per_rad", "friction_mu", "speed_mps",
                 "curvature_per_m")
+STOP_SPEED_MPS = 5.0  # below this forward speed the lateral dynamics are frozen (DESIGN 2)
+
+
+def frozen_below_stop_speed(derivatives_at, speed, stop_speed_mps: float):
+    """Derivatives that are 0 below the stop speed, never dividing by a small V.
+
+    ``derivatives_at(V_eff)`` builds the derivatives at ``V_eff = max(V, v_stop)`` (so the
+    1/V terms stay finite at V = 0); each entry is then ``if V >= v_stop then it else 0``.
+    At V >= v_stop this is the unfrozen expression evaluated at V exactly. Symbolic.
+    """
+    if not stop_speed_mps > 0:
+        raise ConfigError(f"stop_speed_mps = {stop_speed_mps!r} must be positive")
+    effective = sym.max(speed, float(stop_speed_mps))
+    return np.array([gm.where(speed >= float(stop_speed_mps), d, sym.Expression(0.0))
+                     for d in derivatives_at(effective)])
 
 
 # --------------------------------------------------------------------------- equations
@@ -167,15 +184,19 @@ class _NamedInputPlant(Diagram):
 class LinearLateralPlant(_NamedInputPlant):
     """Rajamani eq. 2.45 as a continuous-time system (C++-evaluated); state = output = s.
 
-    ``friction_mu`` is accepted (same ports as the nonlinear plant) and ignored.
+    ``friction_mu`` is accepted (same ports as the nonlinear plant) and ignored. Below
+    ``stop_speed_mps`` the state is frozen (sdot = 0; :func:`frozen_below_stop_speed`).
     """
 
-    def __init__(self, vehicle: VehicleParams):
+    def __init__(self, vehicle: VehicleParams, stop_speed_mps: float = STOP_SPEED_MPS):
         super().__init__()
         s = sym.MakeVectorVariable(4, "s")
         u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
+        self.stop_speed_mps = float(stop_speed_mps)
         with np.errstate(invalid="ignore"):  # numpy flags object arithmetic spuriously
-            dynamics = linear_error_derivatives(vehicle, s, u, c, v, kappa)
+            dynamics = frozen_below_stop_speed(
+                lambda v_eff: linear_error_derivatives(vehicle, s, u, c, v_eff, kappa), v,
+                stop_speed_mps)
         builder = DiagramBuilder()
         core = builder.AddNamedSystem("eq_2_45", SymbolicVectorSystem(
             state=s, input=[u, c, mu, v, kappa], dynamics=dynamics, output=s))
@@ -188,15 +209,21 @@ class NonlinearLateralPlant(_NamedInputPlant):
 
     The output s depends on ``curvature_per_m`` directly (e2dot = r - road yaw rate), not on
     ``steering_rad``, so a state-feedback controller closes no algebraic loop.
+    The speed input may vary in time (the lateral equations hold for a varying forward
+    speed); below ``stop_speed_mps`` the body state is frozen (:func:`frozen_below_stop_speed`),
+    and the output map, which has no 1/V, still uses the actual V.
     """
 
-    def __init__(self, vehicle: VehicleParams):
+    def __init__(self, vehicle: VehicleParams, stop_speed_mps: float = STOP_SPEED_MPS):
         super().__init__()
         x = sym.MakeVectorVariable(4, "x")
         u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
+        self.stop_speed_mps = float(stop_speed_mps)
         builder = DiagramBuilder()
         with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
-            x_dot = single_track_derivatives(vehicle, x, u, c, mu, v, kappa)
+            x_dot = frozen_below_stop_speed(
+                lambda v_eff: single_track_derivatives(vehicle, x, u, c, mu, v_eff, kappa), v,
+                stop_speed_mps)
         dynamics = builder.AddNamedSystem("single_track", SymbolicVectorSystem(
             state=x, input=[u, c, mu, v, kappa], dynamics=x_dot, output=x))
         xin = sym.MakeVectorVariable(4, "x_in")

@@ -13,6 +13,9 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from drake_cert.errors import ConfigError
 
+ROAD_KINDS = ("curve", "s_curve", "curvature_step", "straight")  # names for Road.for_episode
+STEP_RAMP_M = 0.01  # a curvature step ramps over this arc length (m): knots increase strictly
+
 
 @dataclasses.dataclass(frozen=True)
 class Road:
@@ -57,13 +60,50 @@ class Road:
         return Road.curve(radius_m=radius_m, straight_m=0.1 * length_m,
                           transition_m=0.1 * length_m, curve_m=0.5 * length_m, left=left)
 
+    @staticmethod
+    def s_curve(*, radius_m: float, straight_m: float = 40.0, transition_m: float = 20.0,
+                curve_m: float = 75.0) -> "Road":
+        """Straight, left arc of ``radius_m``, a clothoid of twice ``transition_m`` through
+        zero curvature into a right arc of the same radius and length, clothoid out, straight."""
+        if not radius_m > 0:
+            raise ConfigError(f"road: radius_m = {radius_m!r} must be positive")
+        kappa = 1.0 / radius_m
+        knots = np.cumsum([0.0, straight_m, transition_m, curve_m, 2 * transition_m, curve_m,
+                           transition_m])
+        return Road(tuple(float(k) for k in knots), (0.0, 0.0, kappa, kappa, -kappa, -kappa, 0.0))
+
+    @staticmethod
+    def curvature_step(*, radius_m: float, straight_m: float = 40.0, left: bool = True
+                       ) -> "Road":
+        """Straight for ``straight_m``, then a step to the curvature of a ``radius_m`` arc that
+        lasts to the end (the step ramps over ``STEP_RAMP_M``; no clothoid)."""
+        if not radius_m > 0:
+            raise ConfigError(f"road: radius_m = {radius_m!r} must be positive")
+        kappa = (1.0 if left else -1.0) / radius_m
+        return Road((0.0, straight_m, straight_m + STEP_RAMP_M), (0.0, 0.0, kappa))
+
+    @staticmethod
+    def for_episode(kind: str, *, radius_m: float, length_m: float) -> "Road":
+        """A road of ``kind`` (one of ``ROAD_KINDS``) laid out over an episode of ``length_m``:
+        curve: :meth:`episode_curve`; s_curve: 10% straight, 5% clothoid, 25% left arc, 10%
+        clothoid, 25% right arc, 5% clothoid, straight; curvature_step: 10% straight, then the
+        arc; straight: no curvature."""
+        if kind not in ROAD_KINDS:
+            raise ConfigError(f"road kind {kind!r}; expected one of {', '.join(ROAD_KINDS)}")
+        if not length_m > 0:
+            raise ConfigError(f"road: length_m = {length_m!r} must be positive")
+        if kind == "curve":
+            return Road.episode_curve(radius_m=radius_m, length_m=length_m)
+        if kind == "s_curve":
+            return Road.s_curve(radius_m=radius_m, straight_m=0.1 * length_m,
+                                transition_m=0.05 * length_m, curve_m=0.25 * length_m)
+        if kind == "curvature_step":
+            return Road.curvature_step(radius_m=radius_m, straight_m=0.1 * length_m)
+        return Road.straight()
+
     def curvature_at(self, arc_length_m) -> np.ndarray:
         """Curvature (1/m) at the given arc lengths (m)."""
         return np.interp(arc_length_m, self.knots_m, self.curvature_per_m)
-
-    def max_abs_curvature(self) -> float:
-        """Largest |kappa| along the road (1/m)."""
-        return float(np.max(np.abs(self.curvature_per_m)))
 
     def curvature_trajectory(self, speed_mps: float, t_final_s: float) -> PiecewisePolynomial:
         """kappa(t) = kappa(V t) on [0, t_final] as a first-order-hold PiecewisePolynomial."""

@@ -116,7 +116,10 @@ def test_image_folder_round_trips_exported_frames(tmp_path):
     assert loaded.preset == "rtk-like" and loaded.label_names == frames.label_names
     assert torch.equal(loaded.labels, frames.labels)
     assert torch.equal(loaded.images, frames.images)  # 8-bit frames survive PNG exactly
-    assert torch.isnan(loaded.stiffness_n_per_rad).all()
+    # stiffness.csv (written by export_frames, to 0.1 N/rad) gives back each true stiffness
+    assert torch.allclose(loaded.stiffness_n_per_rad, frames.stiffness_n_per_rad, atol=0.1)
+    (tmp_path / "stiffness.csv").unlink()
+    assert torch.isnan(load_image_folder(tmp_path, size=32).stiffness_n_per_rad).all()
 
 
 def test_image_folder_resizes_jpeg_and_png_to_the_model_size(tmp_path):

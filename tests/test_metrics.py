@@ -34,3 +34,11 @@ def test_instability_rate_is_the_percentage_of_episodes_that_left():
     tapes = [_tape([0.1]), _tape([1.0]), _tape([-2.0]), _tape([0.5])]
     assert metrics.instability_rate(tapes) == pytest.approx(50.0)
     assert metrics.instability_rate([]) == 0.0
+
+
+def test_time_left_lane_interpolates_the_first_crossing_of_the_margin():
+    from drake_cert.metrics import time_left_lane
+
+    tape = _tape([0.0, 0.5, 0.8, 1.2, 6.0])  # samples every 0.1 s, margin 0.85 m
+    assert time_left_lane(tape) == pytest.approx(0.2 + 0.1 * (0.85 - 0.8) / (1.2 - 0.8))
+    assert time_left_lane(_tape([0.0, -0.3, 0.2])) is None

@@ -43,41 +43,61 @@ def test_every_safe_speed_meets_all_four_conditions_at_that_speed(default_design
         assert d.has_safe_speed, d.labels
         v, k = d.speed_mps, d.filter_gain
         assert syn.speed_min_mps <= v <= d.gain_speed_max_mps and 0 < k <= syn.filter_gain_max
-        assert cond.l1_condition_margin(vehicle, d.k_m, d.interval, v, k, 9, 9) > 0.0
-        assert cond.reference_stability_margin(vehicle, d.k_m, d.interval, syn.speed_min_mps, v,
+        box = d.certified_interval  # the label interval widened to the tire's secant stiffness
+        assert box[0] < d.stiffness_lo_n_per_rad and box[1] == d.stiffness_hi_n_per_rad
+        assert cond.l1_condition_margin(vehicle, d.k_m, box, v, k, 9, 9) > 0.0
+        assert cond.reference_stability_margin(vehicle, d.k_m, box, syn.speed_min_mps, v,
                                                k, 9, 25) > 0.0
-        assert cond.steady_state_offset_margin(vehicle, d.k_m, d.interval, v,
+        assert cond.steady_state_offset_margin(vehicle, d.k_m, box, v,
                                                syn.design_radius_m, settings.controller.q_ad_diag,
                                                9) > 0.0
-        slip, accel = cond.grip_margins(vehicle, d.stiffness_lo_n_per_rad, d.friction_mu_lo, v,
-                                        syn.design_radius_m, syn.slip_angle_max_rad,
-                                        syn.lateral_accel_fraction)
+        slip, accel = cond.grip_margins(d.friction_mu_lo, v, syn.design_radius_m,
+                                        d.tire_slip_bound, syn.lateral_accel_fraction)
         assert slip >= 0.0 and accel >= 0.0
         assert set(d.margins) == set(cond.MARGIN_KEYS)
 
 
 def test_safe_speed_is_at_most_the_grip_limit_and_close_to_it_when_grip_binds(default_design_table):
-    vehicle, syn = load_vehicle(), load_settings().synthesis
+    syn = load_settings().synthesis
     for d in default_design_table.designs:
-        limit = cond.grip_speed_limit_mps(vehicle, d.stiffness_lo_n_per_rad, d.friction_mu_lo,
-                                          syn.design_radius_m, syn.slip_angle_max_rad,
-                                          syn.lateral_accel_fraction)
+        limit = cond.grip_speed_limit_mps(d.friction_mu_lo, syn.design_radius_m,
+                                          d.tire_slip_bound, syn.lateral_accel_fraction)
         assert d.speed_mps <= limit
-        if d.margins["grip_slip_angle_rad"] < 1e-3:  # grip is the binding condition
+        if min(d.margins["grip_normalised_slip"],
+               d.margins["grip_lateral_accel_mps2"]) < 1e-3:  # grip is the binding condition
             assert d.speed_mps >= limit - syn.speed_grid_step_mps / 16
 
 
 def test_friction_limit_is_sqrt_of_fraction_mu_g_r():
-    """a_y <= 0.7 mu g on R = 50 m: sunny 17.58, light rain 15.50, heavy rain 13.10, snow 9.26 m/s.
-
-    (The figures 19.7/17.4/14.7/10.4 quoted in the brief correspond to R of about 63 m.)
-    """
-    vehicle = load_vehicle()
-    for mu, expected in [(0.9, 17.58), (0.7, 15.50), (0.5, 13.10), (0.25, 9.26)]:
-        # huge stiffness: the slip limit does not bind, the friction limit does
-        v = cond.grip_speed_limit_mps(vehicle, 1e9, mu, 50.0, 0.03, 0.7)
-        assert v == pytest.approx(np.sqrt(0.7 * mu * GRAVITY_MPS2 * 50.0))
+    """a_y <= 0.85 mu g on R = 50 m: sunny 19.36, light rain 17.08, heavy rain 14.44, snow 10.21."""
+    for mu, expected in [(0.9, 19.36), (0.7, 17.08), (0.5, 14.44), (0.25, 10.21)]:
+        # slip bound 0.6 admits 1 - 0.4^3 = 94% of the grip: the 85% fraction binds
+        v = cond.grip_speed_limit_mps(mu, 50.0, 0.6, 0.85)
+        assert v == pytest.approx(np.sqrt(0.85 * mu * GRAVITY_MPS2 * 50.0))
         assert v == pytest.approx(expected, abs=0.05)
+    # a small slip bound binds instead: z_b = 0.2 admits 1 - 0.8^3 = 48.8% of mu g
+    assert cond.grip_speed_limit_mps(0.5, 50.0, 0.2, 0.85) == pytest.approx(
+        np.sqrt(0.488 * 0.5 * GRAVITY_MPS2 * 50.0))
+
+
+def test_single_label_speeds_follow_friction_not_stiffness(default_design_table):
+    # asphalt and heavy rain share the stiffness interval 40k-60k; friction 0.8 vs 0.5
+    asphalt = _design(default_design_table, "asphalt").speed_mps
+    heavy_rain = _design(default_design_table, "heavy_rain").speed_mps
+    assert asphalt > heavy_rain
+    assert asphalt == pytest.approx(np.sqrt(0.85 * 0.8 * GRAVITY_MPS2 * 50.0), abs=0.05)
+
+
+@pytest.mark.parametrize("utilisation", [0.1, 0.5, 0.85, 0.99])
+def test_steady_tire_slip_matches_the_axle_balance_through_the_fiala_force(utilisation):
+    from synthesis.verify import cornering_normalised_slip
+
+    vehicle, mu, radius = load_vehicle(), 0.7, 50.0
+    speed = np.sqrt(utilisation * mu * GRAVITY_MPS2 * radius)
+    closed_form = cond.steady_state_normalised_slip(mu, speed, radius)
+    assert closed_form == pytest.approx(cornering_normalised_slip(vehicle, mu, speed, radius),
+                                        abs=1e-9)
+    assert 3 * closed_form - 3 * closed_form**2 + closed_form**3 == pytest.approx(utilisation)
 
 
 @pytest.mark.parametrize("stiffness,speed", [(20e3, 8.0), (80e3, 16.0), (45e3, 25.0)])
@@ -91,10 +111,10 @@ def test_slip_angle_formula_matches_the_steady_state_single_track(stiffness, spe
 def test_no_safe_speed_names_grip_when_the_slip_limit_is_unreachable():
     settings = load_settings()
     settings = dataclasses.replace(
-        settings, synthesis=dataclasses.replace(settings.synthesis, slip_angle_max_rad=1e-4))
+        settings, synthesis=dataclasses.replace(settings.synthesis, normalised_slip_max=1e-4))
     d = synthesize_design(load_vehicle(), (20e3, 40e3), 0.25, settings, ["snow"])
     assert d.speed_mps == 0.0 and d.failed_condition == cond.GRIP
-    assert d.margins["grip_slip_angle_rad"] < 0.0
+    assert d.margins["grip_normalised_slip"] < 0.0
 
 
 def test_no_safe_speed_names_the_l1_condition_when_the_filter_is_too_slow():

@@ -99,7 +99,7 @@ def test_interval_not_matching_the_labels_fails(table_file, tmp_path, capsys):
 def test_true_no_safe_speed_claim_holds():
     vehicle, settings = load_vehicle(), load_settings()
     settings = dataclasses.replace(
-        settings, synthesis=dataclasses.replace(settings.synthesis, slip_angle_max_rad=1e-4))
+        settings, synthesis=dataclasses.replace(settings.synthesis, normalised_slip_max=1e-4))
     design = synthesize_design(vehicle, (20e3, 40e3), 0.25, settings, ["snow"])
     assert design.speed_mps == 0.0 and design.failed_condition == "grip"
     check = verify_design(design, vehicle, settings, load_conditions())
@@ -182,3 +182,82 @@ def test_help_exits_0(command):
     out = subprocess.run([sys.executable, "-m", "drake_cert.cli", command, "--help"],
                          capture_output=True, text=True)
     assert out.returncode == 0 and "--json" in out.stdout
+
+
+def _shipped(name):
+    from drake_cert.config import default_path
+
+    return str(default_path(name))
+
+
+def test_self_consistently_raised_speed_is_rejected_against_the_shipped_settings(
+        table_file, tmp_path, capsys):
+    def edit(raw):  # raise the friction fraction and the speed together, as a forger would
+        raw["settings"]["synthesis"]["lateral_accel_fraction"] = 0.99
+        raw["designs"][0]["speed_mps"] *= 1.3
+
+    tampered = str(_tampered(table_file, tmp_path, edit, ("heavy_rain",)))
+    assert cli.main(["verify", tampered, "--settings", _shipped("settings.yaml"),
+                     "--vehicle", _shipped("vehicle.yaml"),
+                     "--conditions", _shipped("conditions.yaml")]) == 1
+    err = capsys.readouterr().err
+    assert "fails reference_inputs" in err
+    assert "settings.synthesis.lateral_accel_fraction = 0.99" in err
+
+
+def test_verify_against_reference_files_passes_an_untouched_table(table_file, capsys):
+    assert cli.main(["verify", str(table_file), "--settings", _shipped("settings.yaml"),
+                     "--vehicle", _shipped("vehicle.yaml"),
+                     "--conditions", _shipped("conditions.yaml")]) == 0
+    err = capsys.readouterr().err
+    assert "checked against the reference vehicle, settings, conditions" in err
+
+
+def test_verify_without_reference_files_says_it_used_the_embedded_inputs(table_file, capsys):
+    assert cli.main(["verify", str(table_file)]) == 0
+    assert "own embedded vehicle, settings and conditions" in capsys.readouterr().err
+
+
+def test_changed_vehicle_is_named_when_verified_against_the_shipped_vehicle(
+        table_file, tmp_path, capsys):
+    def edit(raw):
+        raw["vehicle"]["mass_kg"] = 1200.0
+
+    tampered = str(_tampered(table_file, tmp_path, edit, ("snow",)))
+    assert cli.main(["verify", tampered, "--vehicle", _shipped("vehicle.yaml")]) == 1
+    assert "vehicle.mass_kg = 1200.0 differs from the reference 1573.0" in capsys.readouterr().err
+
+
+def test_synthesize_exits_1_naming_the_binding_condition_when_no_design_is_safe(
+        tmp_path, capsys):
+    vehicle = dataclasses.asdict(load_vehicle())
+    vehicle["lf_m"] *= 1000.0  # millimetres typed as metres
+    vehicle["lr_m"] *= 1000.0
+    path = tmp_path / "vehicle_mm.yaml"
+    path.write_text(yaml.safe_dump(vehicle))
+    out_file = tmp_path / "designs.yaml"
+    code = cli.main(["synthesize", "--vehicle", str(path), "--conditions",
+                     str(_small_conditions(tmp_path)), "--out", str(out_file)])
+    err = capsys.readouterr().err
+    assert code == 1 and "no design has a safe speed; binding condition: gain_lmi" in err
+    assert not out_file.exists()
+
+
+def test_each_design_records_the_law_it_certifies_and_a_mismatch_fails(table_file, tmp_path,
+                                                                       capsys):
+    loaded = load_design_file(table_file)
+    assert {d.certified_law for d in loaded.designs} == {load_settings().controller.adaptation_law}
+
+    def edit(raw):
+        raw["designs"][0]["certified_law"] = "gradient"
+
+    assert cli.main(["verify", str(_tampered(table_file, tmp_path, edit, ("snow",)))]) == 1
+    assert "certified for the gradient law" in capsys.readouterr().err
+
+
+def test_a_schema_1_design_file_is_refused_with_a_clear_message(table_file, tmp_path, capsys):
+    def edit(raw):
+        raw["schema_version"] = 1
+
+    assert cli.main(["verify", str(_tampered(table_file, tmp_path, edit))]) == 2
+    assert "old slip-angle grip rule" in capsys.readouterr().err

@@ -6,28 +6,35 @@ measured: ``||x_adv - x||_2 <= eps`` and ``0 <= x_adv <= 1``.
 - Stability attack (SA): raise the predicted stiffness. Classifier: maximise the probability
   of the labels grippier than the frame's clean prediction a (labels 0..a-1; presets list
   labels grippiest first), i.e. push towards the grippiest label; a frame already predicted
-  grippiest is pushed to stay there. Regressor: push the output up.
+  grippiest is pushed to stay there. Regressor: push the output up (against the smoothed
+  model: its median, the quantity the certificate bounds; see :func:`regressor_objective`).
 - Efficiency attack (EA): lower it. Classifier: the labels less grippy than a (a+1..K-1).
   Regressor: push the output down.
 
 Against the base model f (``sigma = 0``) the attack follows f's gradient. Against the smoothed
 model it follows the expectation over the noise (Salman et al. 2019, SmoothAdv): each step
-averages the softmax (classifier) or the output (regressor) over ``noise_draws`` Gaussian draws
-of the current iterate. Deterministic by seed (random start and noise draws use a seeded
-``torch.Generator``).
+averages the softmax (classifier) over ``noise_draws`` Gaussian draws of the current iterate;
+for the regressor it takes a smooth median of the outputs over the draws (the certificate
+bounds the smoothed median; ``regression_target="mean"`` averages them instead).
+Deterministic by seed (random start and noise draws use seeded ``torch.Generator`` streams,
+one for the batch or one per frame).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
+import numpy as np
 import torch
+from scipy.stats import beta as beta_dist
 
 from drake_cert.errors import CertificationError
 
 ATTACKS = ("sa", "ea")
+REGRESSION_TARGETS = ("median", "central", "mean")
+MEDIAN_CENTRAL_FRACTION = 0.25  # share of the noisy outputs averaged by the median surrogate
 
 
 @dataclasses.dataclass(frozen=True)
@@ -40,6 +47,7 @@ class AttackSettings:
     noise_draws: int = 8  # m, noise draws per step against a smoothed model (SmoothAdv)
     random_start: bool = True  # start from a random point of the ball
     seed: int = 0
+    regression_target: str = "median"  # smoothed regressor: "median" (certified) or "mean"
 
     def validate(self) -> None:
         if not (math.isfinite(self.eps) and self.eps >= 0):
@@ -50,6 +58,9 @@ class AttackSettings:
             raise CertificationError(f"attack step_size = {self.step_size!r} must be positive")
         if self.noise_draws < 1:
             raise CertificationError(f"attack noise_draws = {self.noise_draws} must be >= 1")
+        if self.regression_target not in REGRESSION_TARGETS:
+            raise CertificationError(f"attack regression_target = {self.regression_target!r} "
+                                     f"is not one of {', '.join(REGRESSION_TARGETS)}")
 
     @property
     def step_length(self) -> float:
@@ -73,24 +84,60 @@ def project_l2_box(x: torch.Tensor, x_adv: torch.Tensor, eps: float) -> torch.Te
     return torch.clamp(x + delta, 0.0, 1.0)
 
 
+class FrameNoise:
+    """The attack's random draws: one seeded generator for the whole batch, or one per frame.
+
+    With ``frame_seeds`` every frame's random start and noise draws come from its own stream
+    (:mod:`drake_cert.certification.seeds`), independent of how frames are batched.
+    """
+
+    def __init__(self, seed: int, batch: int, device: torch.device,
+                 frame_seeds: Sequence[int] | None = None):
+        if frame_seeds is None:
+            self.generators = [torch.Generator(device=device).manual_seed(int(seed))]
+            self.per_frame = False
+        else:
+            if len(frame_seeds) != batch:
+                raise CertificationError(f"{len(frame_seeds)} frame seeds for {batch} frames")
+            self.generators = [torch.Generator(device=device).manual_seed(int(s))
+                               for s in frame_seeds]
+            self.per_frame = True
+        self.device = device
+
+    def _draw(self, fn, shape: tuple[int, ...], batch_axis: int, dtype) -> torch.Tensor:
+        if not self.per_frame:
+            return fn(shape, generator=self.generators[0], device=self.device, dtype=dtype)
+        one = shape[:batch_axis] + shape[batch_axis + 1:]
+        return torch.stack([fn(one, generator=g, device=self.device, dtype=dtype)
+                            for g in self.generators], dim=batch_axis)
+
+    def randn(self, shape: tuple[int, ...], batch_axis: int, dtype) -> torch.Tensor:
+        return self._draw(torch.randn, tuple(shape), batch_axis, dtype)
+
+    def rand(self, shape: tuple[int, ...], batch_axis: int, dtype) -> torch.Tensor:
+        return self._draw(torch.rand, tuple(shape), batch_axis, dtype)
+
+
 def pgd_l2(objective: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
-           settings: AttackSettings) -> torch.Tensor:
+           settings: AttackSettings, frame_seeds: Sequence[int] | None = None, *,
+           noise: FrameNoise | None = None) -> torch.Tensor:
     """Projected gradient ascent of ``objective`` (per-frame values [B]) in the L2 ball.
 
     Each step moves ``step_length`` along the per-frame normalised gradient, then projects
     onto the ball of radius eps around x intersected with [0, 1]. Returns the last iterate,
-    detached, [B, C, H, W].
+    detached, [B, C, H, W]. Random draws: ``settings.seed`` for the batch, or one stream
+    per frame from ``frame_seeds`` (:class:`FrameNoise`), or ``noise`` (streams already in use).
     """
     settings.validate()
     x = x.detach()
-    gen = torch.Generator(device=x.device).manual_seed(int(settings.seed))
+    gen = noise if noise is not None else FrameNoise(settings.seed, x.shape[0], x.device,
+                                                     frame_seeds)
     x_adv = x.clone()
     if settings.eps == 0 or settings.steps == 0:
         return x_adv
     if settings.random_start:
-        start = torch.randn(x.shape, generator=gen, device=x.device, dtype=x.dtype)
-        radius = torch.rand((x.shape[0],) + (1,) * (x.dim() - 1), generator=gen,
-                            device=x.device, dtype=x.dtype) * settings.eps
+        start = gen.randn(tuple(x.shape), 0, x.dtype)
+        radius = gen.rand((x.shape[0],) + (1,) * (x.dim() - 1), 0, x.dtype) * settings.eps
         x_adv = project_l2_box(x, x + start / _per_frame_norm(start) * radius, settings.eps)
     for _ in range(settings.steps):
         x_adv.requires_grad_(True)
@@ -103,10 +150,9 @@ def pgd_l2(objective: Callable[[torch.Tensor], torch.Tensor], x: torch.Tensor,
 
 
 def _noisy_copies(x: torch.Tensor, sigma: float, draws: int,
-                  gen: torch.Generator) -> torch.Tensor:
+                  gen: FrameNoise) -> torch.Tensor:
     """[draws * B, C, H, W]: ``draws`` Gaussian-noised copies of each frame (draw-major)."""
-    noise = torch.randn((draws,) + tuple(x.shape), generator=gen, device=x.device,
-                        dtype=x.dtype) * sigma
+    noise = gen.randn((draws,) + tuple(x.shape), 1, x.dtype) * sigma
     return (x.unsqueeze(0) + noise).flatten(0, 1)
 
 
@@ -115,7 +161,7 @@ def classifier_objective(model: torch.nn.Module, targets: torch.Tensor, sigma: f
     """log P(label in targets) per frame: of f's softmax (sigma = 0) or of the softmax averaged
     over noise draws (SmoothAdv). ``targets`` is a [B, K] 0/1 mask of the wanted labels."""
 
-    def objective(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    def objective(x: torch.Tensor, gen: FrameNoise) -> torch.Tensor:
         if sigma == 0:
             probs = torch.softmax(model(x), dim=1)
         else:
@@ -141,21 +187,66 @@ def target_labels(predicted: torch.Tensor, num_classes: int, kind: str) -> torch
     return mask.to(torch.float32)
 
 
-def regressor_objective(model: torch.nn.Module, direction: float, sigma: float,
-                        noise_draws: int) -> Callable:
-    """direction * f(x) (sigma = 0) or direction * the output averaged over noise draws."""
+def harrell_davis_median(values: torch.Tensor) -> torch.Tensor:
+    """Harrell-Davis median along dim 0: ``sum_i w_i y_(i)`` with Beta((m+1)/2, (m+1)/2) weights
+    ``w_i = I_{i/m} - I_{(i-1)/m}`` (I the regularised incomplete beta function).
 
-    def objective(x: torch.Tensor, gen: torch.Generator) -> torch.Tensor:
+    A smooth L-estimator of the median: every order statistic gets a weight peaked at the
+    middle rank, so the gradient reaches all draws (lower variance than the sample median) yet
+    follows the median, not the mean, of a skewed or bimodal output distribution.
+    """
+    m = values.shape[0]
+    a = (m + 1) / 2
+    edges = beta_dist.cdf(np.arange(m + 1) / m, a, a)
+    weights = torch.as_tensor(np.diff(edges), dtype=values.dtype, device=values.device)
+    ordered = torch.sort(values, dim=0).values
+    return (weights.view(-1, *([1] * (values.dim() - 1))) * ordered).sum(dim=0)
+
+
+def central_mean(values: torch.Tensor, fraction: float = MEDIAN_CENTRAL_FRACTION
+                 ) -> torch.Tensor:
+    """Differentiable median surrogate along dim 0: the mean of the central order statistics.
+
+    Of m values, the central c = max(round(fraction * m), 1 or 2) order statistics, with c of
+    the same parity as m so that they sit symmetrically about the median (m = 8: the 4th and
+    5th, i.e. the sample median itself). The gradient flows to the selected values (sorting is
+    piecewise linear), so ascent moves the median of the noisy outputs, not their mean.
+    """
+    m = values.shape[0]
+    c = max(int(round(fraction * m)), 1)
+    if (m - c) % 2:
+        c += 1
+    c = min(c, m)
+    start = (m - c) // 2
+    return torch.sort(values, dim=0).values[start:start + c].mean(dim=0)
+
+
+def regressor_objective(model: torch.nn.Module, direction: float, sigma: float,
+                        noise_draws: int, target: str = "median") -> Callable:
+    """direction * f(x) (sigma = 0), or, against the smoothed model, direction * a statistic of
+    the outputs over ``noise_draws`` noise draws: ``target="median"`` (default) the central
+    mean (:func:`central_mean`, a differentiable surrogate of the median that the certificate
+    bounds), ``"mean"`` their average (the SmoothAdv expectation; kept for comparison)."""
+    if target not in REGRESSION_TARGETS:
+        raise CertificationError(f"regression target {target!r} is not one of "
+                                 f"{', '.join(REGRESSION_TARGETS)}")
+
+    def objective(x: torch.Tensor, gen: FrameNoise) -> torch.Tensor:
         if sigma == 0:
             return direction * model(x).reshape(x.shape[0])
         out = model(_noisy_copies(x, sigma, noise_draws, gen)).reshape(noise_draws, x.shape[0])
+        if target == "median":
+            return direction * harrell_davis_median(out)
+        if target == "central":
+            return direction * central_mean(out)
         return direction * out.mean(dim=0)
 
     return objective
 
 
 def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: AttackSettings, *,
-           task: str, sigma: float = 0.0) -> torch.Tensor:
+           task: str, sigma: float = 0.0,
+           frame_seeds: Sequence[int] | None = None) -> torch.Tensor:
     """Stability (``kind="sa"``) or efficiency (``"ea"``) attack on a batch [B, C, H, W].
 
     ``task`` is "classify" (model returns [B, K] logits, labels grippiest first; the targets
@@ -163,6 +254,8 @@ def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: At
     (model returns stiffness [B] or [B, 1]). ``sigma > 0`` attacks the smoothed model by the
     expectation over ``settings.noise_draws`` noise draws per step; ``sigma = 0`` the base
     model. Returns adversarial frames in [0, 1] within L2 distance eps of the input frames.
+    ``frame_seeds`` (one per frame) gives each frame its own random stream (random start,
+    noise draws); default: one stream from ``settings.seed`` for the batch.
     """
     if kind not in ATTACKS:
         raise CertificationError(f"attack {kind!r} is not one of {', '.join(ATTACKS)}")
@@ -172,29 +265,35 @@ def attack(model: torch.nn.Module, frames: torch.Tensor, kind: str, settings: At
         raise CertificationError(f"attack sigma = {sigma!r} must be >= 0")
     was_training = model.training
     model.eval()
+    # Per-frame streams serve the clean prediction and then PGD, one after the other.
+    noise = None if frame_seeds is None else FrameNoise(settings.seed, frames.shape[0],
+                                                        frames.device, frame_seeds)
     try:
         if task == "classify":
-            predicted = _clean_prediction(model, frames, sigma, settings)
+            predicted = _clean_prediction(model, frames, sigma, settings, noise)
             num_classes = predicted.shape[1]
             targets = target_labels(predicted.argmax(1), num_classes, kind)
             objective = classifier_objective(model, targets, sigma, settings.noise_draws)
         elif task == "regress":
             direction = 1.0 if kind == "sa" else -1.0
-            objective = regressor_objective(model, direction, sigma, settings.noise_draws)
+            objective = regressor_objective(model, direction, sigma, settings.noise_draws,
+                                            settings.regression_target)
         else:
             raise CertificationError(f"task {task!r} is not 'classify' or 'regress'")
-        return pgd_l2(objective, frames, settings)
+        return pgd_l2(objective, frames, settings, noise=noise)
     finally:
         model.train(was_training)
 
 
 def _clean_prediction(model: torch.nn.Module, frames: torch.Tensor, sigma: float,
-                      settings: AttackSettings) -> torch.Tensor:
+                      settings: AttackSettings,
+                      noise: FrameNoise | None = None) -> torch.Tensor:
     """Softmax of f at the frames, or its average over noise draws (sigma > 0), [B, K]."""
     with torch.no_grad():
         if sigma == 0:
             return torch.softmax(model(frames), dim=1)
-        gen = torch.Generator(device=frames.device).manual_seed(int(settings.seed) + 1)
+        gen = noise if noise is not None else FrameNoise(int(settings.seed) + 1,
+                                                         frames.shape[0], frames.device)
         probs = torch.softmax(model(_noisy_copies(frames, sigma, settings.noise_draws, gen)),
                               dim=1)
         return probs.view(settings.noise_draws, frames.shape[0], -1).mean(dim=0)

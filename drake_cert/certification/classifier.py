@@ -74,15 +74,19 @@ class SmoothedClassifier(SmoothedModel):
             single frames are faster eager. ``drake-cert certify --compile auto`` turns it on
             for long runs. Falls back to eager with a warning if compilation fails.
             Certificates are those of the model as evaluated.
+        precision: "fp32" (default) or "bf16": evaluate the base model in bfloat16
+            (:class:`~drake_cert.certification.sampler.Bfloat16Model`; certificates are then
+            those of that model, so attack and calibrate it too).
     """
 
     def __init__(self, base: torch.nn.Module, num_classes: int, sigma: float, *,
-                 device: str | torch.device = "cpu", compile: bool = False):
+                 device: str | torch.device = "cpu", compile: bool = False,
+                 precision: str = "fp32"):
         check_count(num_classes, "num_classes")
         if num_classes < 2:
             raise CertificationError(f"num_classes = {num_classes} must be >= 2")
         self.num_classes = int(num_classes)
-        super().__init__(base, sigma, device, compile)
+        super().__init__(base, sigma, device, compile, precision)
 
     def sample_counts(self, x: torch.Tensor, num: int, batch_size: int,
                       generator: torch.Generator | None = None, *,
@@ -119,7 +123,8 @@ class SmoothedClassifier(SmoothedModel):
         return int(top2[0])
 
     def certify(self, x: torch.Tensor, n0: int, n: int, alpha: float, batch_size: int,
-                safe_set: SafeSet | None = None, *, seed: int | None = None) -> ClassCertificate:
+                safe_set: SafeSet | None = None, *, seed: int | None = None,
+                selection_seed: int | None = None) -> ClassCertificate:
         """Cohen et al.'s CERTIFY with joint per-label bounds and a set radius (DESIGN 3).
 
         ``n0`` samples pick the top label a; ``n`` fresh samples give joint Clopper-Pearson
@@ -129,13 +134,20 @@ class SmoothedClassifier(SmoothedModel):
         noise, the exact smoothed label ``g(z)`` lies in T for every z with
         ``||z - x||_2 < radius`` (and the radius of every other set read from the same
         certificate holds too). Abstains (label ABSTAIN, radius 0) when ``R_T <= 0``.
+
+        Ties in the n0 counts go to the least-friction label (:func:`select_label`). Noise:
+        one generator seeded by ``seed`` for both stages, or, when ``selection_seed`` is
+        given, the n0 samples from ``selection_seed`` and the n samples from ``seed``
+        (independent streams, see :mod:`drake_cert.certification.seeds`).
         """
         check_alpha(alpha)
         check_count(n0, "n0")
         check_count(n, "n")
         self._check_enough_samples(n, alpha)
         gen = make_generator(seed, self.device)
-        top = int(np.argmax(self.sample_counts(x, n0, batch_size, gen, selection=True)))
+        select_gen = gen if selection_seed is None else make_generator(selection_seed,
+                                                                       self.device)
+        top = select_label(self.sample_counts(x, n0, batch_size, select_gen, selection=True))
         counts = self.sample_counts(x, n, batch_size, gen)
         p_low, p_up = clopper_pearson_bounds(counts, alpha)
         members = (top,) if safe_set is None else self._members(safe_set, top)
@@ -162,6 +174,31 @@ class SmoothedClassifier(SmoothedModel):
         check_enough_samples(n, alpha, self.num_classes)
 
 
+def select_label(counts: np.ndarray) -> int:
+    """The label with the most selection votes; ties go to the LAST maximal label.
+
+    Labels are ordered grippiest first, so the last of the tied labels has the least friction:
+    a tie is resolved to the conservative side (a lower stiffness, a lower safe speed).
+    """
+    counts = np.asarray(counts)
+    return int(len(counts) - 1 - np.argmax(counts[::-1]))
+
+
+def _can_certify(n: int, alpha: float, num_classes: int) -> bool:
+    return (alpha / (2 * num_classes)) ** (1.0 / n) > 0.5
+
+
+def min_certifying_samples(alpha: float, num_classes: int) -> int:
+    """The smallest n for which n unanimous votes certify a label at ``alpha`` (the n that
+    :func:`check_enough_samples` names): the least n > log2(2K / alpha)."""
+    n = max(1, math.floor(math.log2(2 * num_classes / alpha)))
+    while n > 1 and _can_certify(n - 1, alpha, num_classes):
+        n -= 1
+    while not _can_certify(n, alpha, num_classes):
+        n += 1
+    return n
+
+
 def check_enough_samples(n: int, alpha: float, num_classes: int) -> None:
     """Raise unless n votes, all for one label, would certify it: p_low must exceed 1/2.
 
@@ -170,7 +207,7 @@ def check_enough_samples(n: int, alpha: float, num_classes: int) -> None:
     """
     check_count(n, "n")
     check_alpha(alpha)
-    if (alpha / (2 * num_classes)) ** (1.0 / n) <= 0.5:
-        need = math.ceil(math.log2(2 * num_classes / alpha))
+    if not _can_certify(n, alpha, num_classes):
+        need = min_certifying_samples(alpha, num_classes)
         raise CertificationError(f"n = {n} samples can never certify at alpha = {alpha} with "
                                  f"{num_classes} labels; use n >= {need}")

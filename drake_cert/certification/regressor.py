@@ -28,12 +28,13 @@ class MedianSmoothedRegressor(SmoothedModel):
     Args:
         base: torch module mapping [B, C, H, W] frames to [B] or [B, 1] (stiffness, N/rad).
         sigma: noise level, > 0 (pixel units).
-        device, compile: as for :class:`SmoothedClassifier`.
+        device, compile, precision: as for :class:`SmoothedClassifier`.
     """
 
     def __init__(self, base: torch.nn.Module, sigma: float, *,
-                 device: str | torch.device = "cpu", compile: bool = False):
-        super().__init__(base, sigma, device, compile)
+                 device: str | torch.device = "cpu", compile: bool = False,
+                 precision: str = "fp32"):
+        super().__init__(base, sigma, device, compile, precision)
 
     def sample_sorted(self, x: torch.Tensor, num: int, batch_size: int,
                       generator: torch.Generator | None = None) -> np.ndarray:
@@ -91,23 +92,29 @@ def calibrate_conformal(regressor: MedianSmoothedRegressor, frames: torch.Tensor
                         stiffness_n_per_rad: Sequence[float], labels: Sequence[int], *, n: int,
                         batch_size: int, alpha_m: float = 0.001, alpha_c: float = 0.01,
                         seed: int | None = 0,
-                        progress: Callable[[Iterable], Iterable] | None = None
-                        ) -> ConformalCalibration:
+                        progress: Callable[[Iterable], Iterable] | None = None,
+                        frame_seeds: Sequence[int] | None = None) -> ConformalCalibration:
     """Split-conformal calibration of the run-time interval on calibration frames (DESIGN 3).
 
     For each frame: ``[L_i, U_i]``, the order-statistic interval of the smoothed median
     (eps = 0 bounds at level ``alpha_m``, n samples), the score
     ``max(y_i - L_i, U_i - y_i)`` with y_i the true stiffness, and per true label the
-    conformal quantile at ``alpha_c`` (:func:`conformal_beta`).
+    conformal quantile at ``alpha_c`` (:func:`conformal_beta`). Noise: one stream from
+    ``seed`` for all frames, or one per frame from ``frame_seeds``
+    (``seeds.stream_seed(root, i, "calibration", split="calibration")``).
     """
     if len(frames) != len(stiffness_n_per_rad) or len(frames) != len(labels):
         raise CertificationError("frames, stiffness and labels must have the same length")
+    if frame_seeds is not None and len(frame_seeds) != len(frames):
+        raise CertificationError(f"{len(frame_seeds)} frame seeds for {len(frames)} frames")
     gen = make_generator(seed, regressor.device)
     iterator: Iterable = range(len(frames))
     if progress is not None:
         iterator = progress(iterator)
     lower, upper = np.empty(len(frames)), np.empty(len(frames))
     for i in iterator:
+        if frame_seeds is not None:
+            gen = make_generator(int(frame_seeds[i]), regressor.device)
         y = regressor.sample_sorted(frames[i], n, batch_size, gen)
         lower[i], upper[i] = percentile_bounds(y, 0.0, regressor.sigma, alpha_m)
     scores = conformity_score(np.asarray(stiffness_n_per_rad, dtype=np.float64), lower, upper)

@@ -4,9 +4,11 @@ path of both smoothed models), the frame and device checks, and seeded generator
 
 from __future__ import annotations
 
+import copy
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
+from pathlib import Path
 
 import torch
 
@@ -28,6 +30,16 @@ def check_frame(x: torch.Tensor) -> None:
     lo, hi = float(x.min()), float(x.max())
     if lo < -1e-6 or hi > 1 + 1e-6:
         raise CertificationError(f"frame values must lie in [0, 1], got [{lo:.4g}, {hi:.4g}]")
+
+
+def check_frame_size(x: torch.Tensor, model: torch.nn.Module) -> None:
+    """Raise :class:`CertificationError` when a model that records its training frame size
+    (``model.meta["image_size"]``, set by ``load_model``) is given a frame of another size:
+    the network's global pooling would accept it and answer about a different picture."""
+    size = getattr(model, "meta", {}).get("image_size") if hasattr(model, "meta") else None
+    if size is not None and tuple(x.shape[-2:]) != (int(size), int(size)):
+        raise CertificationError(f"frame is {x.shape[-2]}x{x.shape[-1]} pixels but the model "
+                                 f"was trained on {size}x{size} frames")
 
 
 def resolve_device(device: str | torch.device) -> torch.device:
@@ -118,6 +130,7 @@ class NoisySampler:
         check_count(num, "number of samples")
         check_count(batch_size, "batch_size")
         check_frame(x)
+        check_frame_size(x, self.base)
         x = x.to(device=self.device, dtype=torch.float32)
         buf = self._get_buffer(x.shape, batch_size, torch.float32)
         remaining = num
@@ -155,12 +168,61 @@ def make_generator(seed: int | None, device: torch.device) -> torch.Generator | 
 
 
 
+PRECISIONS = ("fp32", "bf16")
+
+
+class Bfloat16Model(torch.nn.Module):
+    """The base model evaluated in bfloat16: ``f'(z) = f_bf16(round_bf16(z))``, as float32.
+
+    A copy of the base model in bfloat16 with channels-last weights. The rounding of the noisy
+    frame to bfloat16 is part of this base model, so the Gaussian noise is still drawn and
+    added in float32, as the certificates assume; they are certificates of ``f'`` (not of the
+    float32 model), so attacks, calibration and certification must all use this same module
+    (:func:`with_precision`). ~1.5-1.8x faster than float32 on CPUs with AVX512-BF16/AMX.
+    """
+
+    def __init__(self, base: torch.nn.Module):
+        super().__init__()
+        self.net = copy.deepcopy(base).to(torch.bfloat16).to(memory_format=torch.channels_last)
+        if hasattr(base, "meta"):
+            self.meta = base.meta
+
+    def forward(self, z: torch.Tensor) -> torch.Tensor:
+        z = z.to(torch.bfloat16)
+        if z.dim() == 4:
+            z = z.contiguous(memory_format=torch.channels_last)
+        return self.net(z).float()
+
+
+def bf16_supported() -> bool:
+    """Whether this CPU has native bfloat16 arithmetic (AVX512-BF16 or AMX-BF16 in
+    /proc/cpuinfo); elsewhere bfloat16 is emulated and slower than float32."""
+    try:
+        flags = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return False
+    return "avx512_bf16" in flags or "amx_bf16" in flags
+
+
+def with_precision(model: torch.nn.Module, precision: str) -> torch.nn.Module:
+    """``model`` itself ("fp32") or its :class:`Bfloat16Model` ("bf16"), in eval mode."""
+    if precision not in PRECISIONS:
+        raise CertificationError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
+    if precision == "fp32" or isinstance(model, Bfloat16Model):
+        return model
+    return Bfloat16Model(model).eval()
+
+
 class SmoothedModel:
     """What both smoothed models share: the noisy sampler, its device, compilation and warm-up."""
 
     def __init__(self, base: torch.nn.Module, sigma: float, device: str | torch.device,
-                 compile: bool):
-        self._sampler = NoisySampler(base, sigma, device, compile)
+                 compile: bool, precision: str = "fp32"):
+        if not isinstance(base, torch.nn.Module):
+            raise CertificationError(f"base model must be a torch.nn.Module, got "
+                                     f"{type(base).__name__}")
+        self._sampler = NoisySampler(with_precision(base, precision), sigma, device, compile)
+        self.precision = precision
         self.sigma = self._sampler.sigma
         self.device = self._sampler.device
 

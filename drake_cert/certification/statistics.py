@@ -147,6 +147,18 @@ def conformity_score(y_true: np.ndarray, lower: np.ndarray, upper: np.ndarray) -
     return np.maximum(y - np.asarray(lower), np.asarray(upper) - y)
 
 
+def min_calibration_frames(alpha_c: float) -> int:
+    """Smallest number of calibration frames of one label whose conformal quantile is finite:
+    the least n_l with ``ceil((n_l + 1)(1 - alpha_c)) <= n_l`` (99 at alpha_c = 0.01)."""
+    check_alpha(alpha_c, "alpha_c")
+    n = max(1, math.floor(1.0 / alpha_c) - 2)
+    while n > 1 and math.ceil(n * (1 - alpha_c)) <= n - 1:  # n - 1 already works: step down
+        n -= 1
+    while math.ceil((n + 1) * (1 - alpha_c)) > n:
+        n += 1
+    return n
+
+
 def conformal_beta(scores: np.ndarray, labels: np.ndarray, alpha_c: float) -> dict[int, float]:
     """Mondrian split-conformal quantiles of the scores, one per true label (DESIGN 3).
 

@@ -7,9 +7,12 @@ messages to stderr.
 """
 
 import argparse
+import contextlib
 import importlib
+import signal
 import sys
 
+from drake_cert import __version__
 from drake_cert.errors import DrakeCertError
 
 COMMANDS = {
@@ -19,7 +22,56 @@ COMMANDS = {
     "generate": "render synthetic driving frames for a preset and write a sample grid",
     "train": "train a perception model (classifier or regressor) for a preset",
     "certify": "certify a smoothed model on frames, optionally under attack",
+    "drive": "drive a route in the certified closed-loop Diagram (camera to steering)",
+    "reproduce": "reproduce the paper's tables from per-frame episodes",
 }
+
+
+# Compiled libraries each command needs, imported before it runs with Ctrl-C held back: an
+# interrupt that lands inside numpy's or torch's C-extension import leaves the library half
+# loaded, and the next import then fails with an ImportError or RecursionError traceback.
+HEAVY_IMPORTS = {
+    "synthesize": ("numpy", "cvxpy", "pydrake.systems.framework"),
+    "verify": ("numpy", "cvxpy", "pydrake.systems.framework"),
+    "simulate": ("numpy", "pydrake.systems.analysis"),
+    "generate": ("numpy", "torch"),
+    "train": ("numpy", "torch"),
+    "certify": ("numpy", "torch"),
+}
+
+
+@contextlib.contextmanager
+def interrupt_deferred():
+    """Hold Ctrl-C back inside the block and raise KeyboardInterrupt once it has finished."""
+    caught = []
+    try:
+        previous = signal.signal(signal.SIGINT, lambda *_: caught.append(True))
+    except ValueError:  # not the main thread: signals cannot be handled here
+        yield
+        return
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if caught:
+        raise KeyboardInterrupt
+
+
+class HelpFormatter(argparse.RawDescriptionHelpFormatter):
+    """Appends "(default: X)" to an option's help unless the help already names its default.
+
+    An option left out with default None says "(default: none)" (nothing written, no check)
+    unless its help says in words what happens; flags (default False) are off unless given.
+    ``tests/test_documented_defaults.py`` checks that every option of every command shows one.
+    """
+
+    def _get_help_string(self, action):
+        text = action.help or ""
+        default = action.default
+        if ("default" in text or default is False or default is argparse.SUPPRESS
+                or not action.option_strings or action.required):
+            return text
+        return f"{text} (default: {'none' if default is None else '%(default)s'})"
 
 
 class _Parser(argparse.ArgumentParser):
@@ -31,9 +83,11 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser(command: str | None) -> argparse.ArgumentParser:
     parser = _Parser(prog="drake-cert", description=__doc__.splitlines()[0])
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, help_text in COMMANDS.items():
-        p = sub.add_parser(name, help=help_text, description=help_text)
+        p = sub.add_parser(name, help=help_text, description=help_text,
+                           formatter_class=HelpFormatter)
         if name == command:
             importlib.import_module(f"drake_cert.cli.{name}").configure(p)
     return parser
@@ -42,18 +96,21 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
-    parser = build_parser(command if command in COMMANDS else None)
-    args = parser.parse_args(argv)
-    if args.command is None:
-        parser.print_help(sys.stderr)
-        return 2
-    module = importlib.import_module(f"drake_cert.cli.{args.command}")
-    try:
+    try:  # Ctrl-C anywhere, also while a command imports torch or pydrake: one line
+        parser = build_parser(command if command in COMMANDS else None)
+        args = parser.parse_args(argv)
+        if args.command is None:
+            parser.print_help(sys.stderr)
+            return 2
+        with interrupt_deferred():
+            for name in HEAVY_IMPORTS.get(args.command, ("numpy",)):
+                importlib.import_module(name)
+        module = importlib.import_module(f"drake_cert.cli.{args.command}")
         return int(module.run(args) or 0)
     except DrakeCertError as e:
-        print(f"drake-cert {args.command}: error: {e}", file=sys.stderr)
+        print(f"drake-cert {command}: error: {e}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print(f"drake-cert {args.command}: interrupted", file=sys.stderr)
+        print(f"drake-cert {command or ''}: interrupted".replace(" :", ":"), file=sys.stderr)
         return 130
 

@@ -3,6 +3,9 @@
 Prints accuracy, mean certified radius (abstain = 0), abstain rate and run-time interval
 statistics (width, coverage of the true stiffness); ``--json`` prints every number and the
 per-frame records on stdout. ``--sigma 0`` evaluates the base model f (no certificate).
+``--frames-dir DIR`` certifies a user's class-per-folder frames (``DIR/<label>/*.png``, as
+``drake-cert generate --export`` writes them, with an optional ``stiffness.csv``) instead of
+the synthetic test split. torch is imported only when the command runs (``--help`` is fast).
 """
 
 from __future__ import annotations
@@ -12,7 +15,7 @@ import json
 import math
 import sys
 
-from drake_cert.experiments.perception_eval import CertifySettings
+from drake_cert.errors import ConfigError
 
 DATA_SEED = 0  # the synthetic splits the shipped models were trained and tested on
 
@@ -41,7 +44,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--preset", required=True, help="carla-like, rtk-like or robotcar-like")
     parser.add_argument("--sigma", type=_finite, required=True,
                         help="smoothing noise (0: the base model f, no certificate)")
-    parser.add_argument("--task", choices=("classify", "regress"), default="classify")
+    parser.add_argument("--task", choices=("classify", "regress"), default="classify",
+                        help="classify: smoothed classifier; regress: median-smoothed "
+                             "stiffness regressor")
     parser.add_argument("--attack", choices=("none", "sa", "ea"), default="none",
                         help="PGD stability (sa) or efficiency (ea) attack at budget --eps")
     parser.add_argument("--eps", type=_finite, default=0.5,
@@ -50,12 +55,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--n0", type=_positive_int, default=100, help="selection samples")
     parser.add_argument("--alpha", type=_finite, default=0.001, help="failure probability")
     parser.add_argument("--frames", type=_positive_int, default=50, help="test frames")
-    parser.add_argument("--batch-size", type=_positive_int, default=1000)
+    parser.add_argument("--batch-size", type=_positive_int, default=1000,
+                        help="noisy copies evaluated per forward pass")
     parser.add_argument("--seed", type=int, default=0, help="noise, attack and frame choice")
     parser.add_argument("--device", default="cpu", help="cpu (default) or cuda")
     parser.add_argument("--compile", choices=("auto", "on", "off"), default="auto",
                         help="torch.compile the model (auto: when the run draws >= 50k samples)")
-    parser.add_argument("--attack-steps", type=_positive_int, default=20)
+    parser.add_argument("--attack-steps", type=_positive_int, default=20,
+                        help="PGD steps of the attack")
     parser.add_argument("--calibration-per-class", type=_positive_int, default=100,
                         help="regression: calibration frames per label for the conformal beta")
     parser.add_argument("--calibration-n", type=_positive_int, default=1000,
@@ -63,15 +70,35 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--size", type=_positive_int, default=None,
                         help="frame side in pixels (default: the model's training size)")
     parser.add_argument("--models", default=None, help="model folder (default: shipped models)")
+    parser.add_argument("--frames-dir", metavar="DIR", default=None,
+                        help="certify these class-per-folder frames (DIR/<label>/*.png, labels "
+                             "of --preset; resized to the model's size) instead of the "
+                             "synthetic test split (default: the test split)")
+    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
+                        help="evaluate the model in float32 or bfloat16 (faster on CPUs with "
+                             "AVX512-BF16/AMX; certificates are then those of the bf16 model)")
+    parser.add_argument("--conformal", action="store_true",
+                        help="classify: also the robust conformal interval (holds the true "
+                             "stiffness w.p. >= 1 - alpha_total = 0.99 under any L2 "
+                             "perturbation <= eps, without assuming the classifier is right)")
+    parser.add_argument("--conformal-per-class", type=_positive_int, default=200,
+                        help="calibration frames per label for --conformal (>= 124 for a "
+                             "non-trivial threshold; samples per frame: --calibration-n)")
     parser.add_argument("--json", action="store_true", help="print all results as JSON")
 
 
-def settings_from_args(args: argparse.Namespace) -> CertifySettings:
+def settings_from_args(args: argparse.Namespace):
+    """The validated :class:`CertifySettings` of the command line."""
+    from drake_cert.experiments.perception_eval import CertifySettings
+
     settings = CertifySettings(
         preset=args.preset, sigma=args.sigma, task=args.task, attack=args.attack, eps=args.eps,
         n0=args.n0, n=args.n, alpha=args.alpha, frames=args.frames, batch_size=args.batch_size,
         seed=args.seed, device=args.device, compile=args.compile, attack_steps=args.attack_steps,
-        calibration_per_class=args.calibration_per_class, calibration_n=args.calibration_n)
+        calibration_per_class=args.calibration_per_class, calibration_n=args.calibration_n,
+        conformal=getattr(args, "conformal", False),
+        conformal_per_class=getattr(args, "conformal_per_class", 200),
+        precision=getattr(args, "precision", "fp32"))
     settings.validate()
     return settings
 
@@ -80,6 +107,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
     from drake_cert.certification.sampler import resolve_device
+    from drake_cert.certification.seeds import frame_choice_seed
     from drake_cert.config import load_conditions
     from drake_cert.experiments.perception_eval import (
         certify_classifier,
@@ -97,11 +125,10 @@ def run(args: argparse.Namespace) -> int:
     check_sigma(settings.sigma)
     resolve_device(settings.device)
     model = load_model(settings.preset, settings.task, settings.sigma, args.models)
-    size = args.size or int(getattr(model, "meta", {}).get("image_size", 64))
-    per_class = math.ceil(settings.frames / len(table.preset(settings.preset).labels))
-    test = load_split(settings.preset, "test", seed=DATA_SEED, size=size,
-                      frames_per_class=per_class)
-    index = select_frames(test.labels, settings.frames, settings.seed)
+    size = model_frame_size(model, args.size)
+    test = frames_to_certify(args.frames_dir, settings, table, size)
+    index = select_frames(test.labels, min(settings.frames, len(test)),
+                          frame_choice_seed(settings.seed))
     images, labels = test.images[index], test.labels[index]
     stiffness = test.stiffness_n_per_rad[index]
 
@@ -110,8 +137,14 @@ def run(args: argparse.Namespace) -> int:
                     file=sys.stderr, leave=False, disable=args.json and not sys.stderr.isatty())
 
     if settings.task == "classify":
+        conformal_cal = None
+        if settings.conformal and settings.sigma > 0:
+            cal = load_split(settings.preset, "calibration", seed=DATA_SEED, size=size,
+                             frames_per_class=settings.conformal_per_class)
+            conformal_cal = (cal.images, cal.labels)
         records, summary = certify_classifier(model, images, labels, stiffness,
-                                              list(test.label_names), table, settings, progress)
+                                              list(test.label_names), table, settings, progress,
+                                              calibration=conformal_cal)
     else:
         calibration = None
         if settings.sigma > 0:
@@ -127,6 +160,28 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(format_summary(summary))
     return 0
+
+
+def frames_to_certify(frames_dir, settings, table, size: int):
+    """A user's class-per-folder frames (``--frames-dir``), else the synthetic test split with
+    enough frames per label for ``settings.frames``."""
+    from drake_cert.perception.datasets import load_image_folder, load_split
+
+    if frames_dir is not None:
+        return load_image_folder(frames_dir, preset=settings.preset, size=size,
+                                 conditions=table)
+    per_class = math.ceil(settings.frames / len(table.preset(settings.preset).labels))
+    return load_split(settings.preset, "test", seed=DATA_SEED, size=size,
+                      frames_per_class=per_class)
+
+
+def model_frame_size(model, size: int | None) -> int:
+    """The frame side the model was trained on; ConfigError if ``--size`` asks for another."""
+    trained = int(getattr(model, "meta", {}).get("image_size", 64))
+    if size is not None and size != trained:
+        raise ConfigError(f"--size {size}: the model was trained on {trained}x{trained} "
+                          f"frames; certify frames of that size (leave --size out)")
+    return trained
 
 
 def format_summary(s: dict) -> str:
@@ -145,7 +200,7 @@ def format_summary(s: dict) -> str:
                 f"single label: {s['mean_radius_label']:.3f}; abstain = 0)\n"
                 f"run-time interval at eps={s['eps']:g}: mean width "
                 f"{s['interval_width_mean']:,.0f} N/rad, coverage {s['interval_coverage']:.3f}"
-                f", envelope rate {s['envelope_rate']:.3f}")
+                f", envelope rate {s['envelope_rate']:.3f}" + _conformal_line(s))
     if s["sigma"] == 0:
         return (f"{head} (base model f, no certificate)\n"
                 f"mean abs error {s['mae_n_per_rad']:,.0f} N/rad "
@@ -156,6 +211,16 @@ def format_summary(s: dict) -> str:
             f"run-time interval at eps={s['eps']:g}: mean width "
             f"{s['interval_width_mean']:,.0f} N/rad (raw {s['raw_width_mean']:,.0f}), "
             f"coverage {s['interval_coverage']:.3f}")
+
+
+def _conformal_line(s: dict) -> str:
+    if "conformal_interval_coverage" not in s:
+        return ""
+    lo, hi = s["conformal_interval_coverage_ci95"]
+    return (f"\nrobust conformal interval at eps={s['eps']:g}: mean width "
+            f"{s['conformal_interval_width_mean']:,.0f} N/rad, coverage "
+            f"{s['conformal_interval_coverage']:.3f} (95% CI {lo:.3f}-{hi:.3f}; guaranteed >= "
+            f"{s['conformal_guarantee']:.3f} without assuming the classifier is right)")
 
 
 def _num(value) -> str:

@@ -22,8 +22,9 @@ def configure(parser) -> None:
                         help="folder to write <label>/<index>.png frames and stiffness.csv into")
     parser.add_argument("--frames-per-class", type=int, default=None,
                         help="frames per label to export (default: the split's count)")
-    parser.add_argument("--split", default="train", choices=("train", "calibration", "test"))
-    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--split", default="train", choices=("train", "calibration", "test"),
+                        help="which split's frames to render (each split has its own seeds)")
+    parser.add_argument("--seed", type=int, default=0, help="data seed (>= 0)")
     parser.add_argument("--size", type=int, default=64, help="frame side in pixels")
     parser.add_argument("--scale", type=int, default=2, help="grid: pixels per frame pixel")
     parser.add_argument("--conditions", default=None, help="conditions YAML (default: shipped)")
@@ -46,6 +47,7 @@ def run(args) -> int:
         raise ConfigError(f"--seed {args.seed} must be >= 0")
     table = load_conditions(args.conditions)
     table.preset(args.preset)
+    check_outputs(args)
     count = args.frames_per_class
     if args.export is None:
         count = args.per_class
@@ -58,6 +60,16 @@ def run(args) -> int:
         n = export_frames(frames, args.export)
         print(f"drake-cert generate: wrote {n} frames to {args.export}", file=sys.stderr)
     return 0
+
+
+def check_outputs(args) -> None:
+    """Fail in one line before rendering when --out or --export cannot be written."""
+    from drake_cert.io import check_writable
+
+    if args.out is not None:
+        check_writable(args.out, "--out")
+    if args.export is not None:
+        check_writable(Path(args.export) / "stiffness.csv", "--export")
 
 
 def write_sample_grid(frames, out: str | Path, *, scale: int = 2) -> Path:

@@ -4,8 +4,9 @@ Loads the vehicle, road conditions and settings (shipped defaults unless given),
 one design per contiguous label range of each preset (``synthesis.table``) and prints a
 table (or ``--json`` on stdout). ``--out FILE`` writes the design table as YAML (atomically,
 with schema version and provenance) for ``drake-cert verify`` and the simulator. Exit 0 on
-success, also when some ranges have no safe speed (they say which condition failed); 2 on
-bad input.
+success, also when some ranges have no safe speed (they say which condition failed); 1 when
+no range has a safe speed (nothing is written; the message names the binding condition,
+almost always the sign of a unit mistake in a vehicle file); 2 on bad input.
 """
 
 from __future__ import annotations
@@ -41,7 +42,11 @@ def design_record(design) -> dict:
 
 
 def format_table(designs) -> str:
-    """Readable table: labels, interval, k_m, k, speed, failed condition or smallest margin."""
+    """Readable table: labels, interval, k_m, k, speed, failed condition or smallest margin.
+
+    Label ranges are written as ``simulate --labels`` reads them (``a+b``)."""
+    from drake_cert.config import format_label_range
+
     rows = [("labels", "interval (kN/rad)", "k_m", "k", "speed (m/s)", "failed / margins")]
     for d in designs:
         if d.failed_condition:
@@ -50,7 +55,7 @@ def format_table(designs) -> str:
             note = ", ".join(f"{k}={v:.3g}" for k, v in d.margins.items()
                              if k != "gain_decay_per_s")
         rows.append((
-            "+".join(d.labels) or "(interval)",
+            format_label_range(d.labels) or "(interval)",
             f"{d.stiffness_lo_n_per_rad / 1e3:g}-{d.stiffness_hi_n_per_rad / 1e3:g}",
             "[" + " ".join(f"{x:.3g}" for x in d.k_m) + "]",
             f"{d.filter_gain:g}",
@@ -62,6 +67,12 @@ def format_table(designs) -> str:
                      + r[5] for r in rows)
 
 
+def binding_condition(designs) -> str:
+    """The condition that fails most often among designs without a safe speed (first on ties)."""
+    failed = [d.failed_condition for d in designs if d.failed_condition]
+    return max(dict.fromkeys(failed), key=failed.count) if failed else "none"
+
+
 def run(args: argparse.Namespace) -> int:
     from tqdm import tqdm
 
@@ -71,6 +82,10 @@ def run(args: argparse.Namespace) -> int:
     from synthesis.design_io import DesignTable, save_design_table
     from synthesis.table import synthesize_table
 
+    if args.out:
+        from drake_cert.io import check_writable
+
+        check_writable(args.out, "--out")  # before the synthesis, not after it
     vehicle = load_vehicle(args.vehicle)
     conditions = load_conditions(args.conditions)
     settings = load_settings(args.settings)
@@ -79,6 +94,12 @@ def run(args: argparse.Namespace) -> int:
         return tqdm(ranges, desc="synthesize", unit="range", file=sys.stderr, leave=False)
 
     designs = synthesize_table(vehicle, conditions, settings, progress)
+    if not any(d.has_safe_speed for d in designs):
+        print(format_table(designs))
+        print(f"drake-cert synthesize: no design has a safe speed; binding condition: "
+              f"{binding_condition(designs)} (check the vehicle file's units: kg, kg m^2, m); "
+              "nothing written", file=sys.stderr)
+        return 1
     prov = provenance(seed=None)  # deterministic: no seed
     table = DesignTable(designs, vehicle, settings, prov, conditions)
     if args.out:

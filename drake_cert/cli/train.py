@@ -115,20 +115,7 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
     """Train (classify) or fit (regress) one model unless its file exists; returns its metrics."""
     from drake_cert.io import provenance
     from drake_cert.perception.datasets import load_split
-    from drake_cert.perception.models import (
-        file_sha256,
-        load_model,
-        model_path,
-        save_model,
-        sigma_tag,
-        train_command,
-    )
-    from drake_cert.perception.training import (
-        evaluate_accuracy,
-        evaluate_mse,
-        fit_regressor,
-        train_classifier,
-    )
+    from drake_cert.perception.models import model_path, save_model, sigma_tag
 
     path = model_path(preset, task, sigma, args.models)
     name = f"{preset} {task} sigma={sigma_tag(sigma)}"
@@ -137,12 +124,7 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
               file=sys.stderr)
         return None
     if task == "regress":
-        cpath = model_path(preset, "classify", sigma, args.models)
-        if not cpath.exists():
-            raise ModelNotFoundError(
-                f"the {task} model for {preset} at sigma {sigma_tag(sigma)} needs its classifier "
-                f"{cpath}; make it first with: "
-                f"{train_command(preset, 'classify', sigma, args.models)}")
+        _require_classifier(preset, sigma, args.models)
     t0 = time.perf_counter()
     train = load_split(preset, "train", seed=args.seed, frames_per_class=args.frames_per_class,
                        conditions=table)
@@ -155,25 +137,14 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
             "label_names": list(train.label_names), "image_size": train.size,
             "train_frames_per_class": len(train) // len(train.label_names)}
     t0 = time.perf_counter()
+    ckpt = path.with_name(path.name + ".ckpt") if task == "classify" else None
     if task == "classify":
-        epochs = args.epochs or default_epochs(len(train))
-        ckpt = path.with_name(path.name + ".ckpt")
-        model, train_metrics = train_classifier(train, sigma=sigma, epochs=epochs, seed=args.seed,
-                                                checkpoint=ckpt, progress=True, description=name)
-        test_metrics = {"test_accuracy_clean": evaluate_accuracy(model, test),
-                        "test_accuracy_noisy": evaluate_accuracy(model, test, sigma=sigma,
-                                                                 seed=args.seed),
-                        "test_frames": len(test)}
+        model, train_metrics, test_metrics = _fit_classifier(train, test, sigma, args, ckpt,
+                                                             name)
     else:
-        classifier = load_model(preset, "classify", sigma, args.models)
-        model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
-        test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
-                        "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
-                                                                    seed=args.seed),
-                        "test_frames": len(test)}
-        meta["classifier_file"] = cpath.name
-        meta["classifier_sha256"] = file_sha256(cpath)
-        ckpt = None
+        model, train_metrics, test_metrics, extra = _fit_regressor(preset, train, test, sigma,
+                                                                   args)
+        meta.update(extra)
     seconds = time.perf_counter() - t0
     meta["train_metrics"] = train_metrics
     meta["test_metrics"] = test_metrics
@@ -186,6 +157,49 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
     print(f"drake-cert train: {name}: {shown} ({seconds:.0f} s) -> {path}", file=sys.stderr)
     return {"file": str(path), "preset": preset, "task": task, "sigma": sigma,
             "seconds": round(seconds, 2), **test_metrics}
+
+
+def _require_classifier(preset: str, sigma: float, models) -> Path:
+    """The classifier file a regressor head is fitted on; ModelNotFoundError if it is missing."""
+    from drake_cert.perception.models import model_path, sigma_tag, train_command
+
+    cpath = model_path(preset, "classify", sigma, models)
+    if not cpath.exists():
+        raise ModelNotFoundError(
+            f"the regress model for {preset} at sigma {sigma_tag(sigma)} needs its classifier "
+            f"{cpath}; make it first with: {train_command(preset, 'classify', sigma, models)}")
+    return cpath
+
+
+def _fit_classifier(train, test, sigma: float, args, ckpt: Path, name: str):
+    """Train the noise-augmented classifier; returns (model, train metrics, test metrics)."""
+    from drake_cert.perception.training import evaluate_accuracy, train_classifier
+
+    epochs = args.epochs or default_epochs(len(train))
+    model, train_metrics = train_classifier(train, sigma=sigma, epochs=epochs, seed=args.seed,
+                                            checkpoint=ckpt, progress=True, description=name)
+    test_metrics = {"test_accuracy_clean": evaluate_accuracy(model, test),
+                    "test_accuracy_noisy": evaluate_accuracy(model, test, sigma=sigma,
+                                                             seed=args.seed),
+                    "test_frames": len(test)}
+    return model, train_metrics, test_metrics
+
+
+def _fit_regressor(preset: str, train, test, sigma: float, args):
+    """Fit the ridge head on the classifier's features; returns (model, train metrics,
+    test metrics, provenance of the classifier it was fitted on)."""
+    from drake_cert.perception.models import file_sha256, load_model
+    from drake_cert.perception.training import evaluate_mse, fit_regressor
+
+    cpath = _require_classifier(preset, sigma, args.models)
+    classifier = load_model(preset, "classify", sigma, args.models)
+    model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
+    test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
+                    "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
+                                                                seed=args.seed),
+                    "test_frames": len(test)}
+    extra = {"classifier_file": cpath.name, "classifier_sha256": file_sha256(cpath)}
+    return model, train_metrics, test_metrics, extra
 
 
 def update_manifest(root: Path, path: Path, meta: dict) -> None:

@@ -14,12 +14,21 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
+from scipy.stats import beta as beta_dist
 
 from drake_cert.certification.attacks import AttackSettings, attack
 from drake_cert.certification.classifier import SmoothedClassifier, check_enough_samples
+from drake_cert.certification.conformal import (
+    ALPHA_C,
+    BETA_CAL,
+    calibrate_robust_conformal,
+    conformal_interval,
+)
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
-from drake_cert.certification.statistics import percentile_bound_indices
+from drake_cert.certification.sampler import PRECISIONS, with_precision
+from drake_cert.certification.seeds import stream_seed, streams
+from drake_cert.certification.statistics import min_calibration_frames, percentile_bound_indices
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import CertificationError
 
@@ -49,6 +58,11 @@ class CertifySettings:
     calibration_n: int = 1000  # regression: samples per calibration frame
     alpha_c: float = 0.01  # regression: conformal miscoverage
     alpha_m: float = 0.001  # regression: level of the calibration median interval
+    conformal: bool = False  # classify: also the robust conformal interval (needs calibration)
+    conformal_alpha_c: float = ALPHA_C  # its conformal miscoverage (alpha_total adds 2 betas)
+    conformal_beta: float = BETA_CAL  # its Monte-Carlo levels (calibration and test each)
+    conformal_per_class: int = 200  # its calibration frames per label (>= 1/alpha_c - 1)
+    precision: str = "fp32"  # "fp32" or "bf16": the model as evaluated everywhere (attack too)
 
     def validate(self) -> None:
         if self.task not in ("classify", "regress"):
@@ -60,17 +74,27 @@ class CertifySettings:
         if not (math.isfinite(self.eps) and self.eps >= 0):
             raise CertificationError(f"eps = {self.eps!r} must be a finite number >= 0")
         for key in ("n0", "n", "frames", "batch_size", "attack_steps", "attack_noise_draws",
-                    "calibration_per_class", "calibration_n"):
+                    "calibration_per_class", "calibration_n", "conformal_per_class"):
             if getattr(self, key) <= 0:
                 raise CertificationError(f"{key.replace('_', '-')} = {getattr(self, key)} "
                                          "must be a positive integer")
-        for key in ("alpha", "alpha_c", "alpha_m"):
+        for key in ("alpha", "alpha_c", "alpha_m", "conformal_alpha_c", "conformal_beta"):
             if not 0 < getattr(self, key) < 1:
                 raise CertificationError(f"{key} = {getattr(self, key)!r} must be in (0, 1)")
+        if self.precision not in PRECISIONS:
+            raise CertificationError(f"precision {self.precision!r} is not one of "
+                                     f"{', '.join(PRECISIONS)}")
         if self.compile not in ("auto", "on", "off"):
             raise CertificationError(f"compile = {self.compile!r} is not auto, on or off")
         if self.seed < 0:
             raise CertificationError(f"seed = {self.seed} must be >= 0")
+        need = min_calibration_frames(self.alpha_c)
+        if self.task == "regress" and self.sigma > 0 and self.calibration_per_class < need:
+            raise CertificationError(
+                f"calibration-per-class = {self.calibration_per_class} frames is too few for "
+                f"the conformal beta at alpha_c = {self.alpha_c:g}: it needs at least {need} "
+                "calibration frames per label (with fewer, beta is infinite and the run-time "
+                "interval is the whole envelope)")
 
     def compile_model(self, samples: int) -> bool:
         """Compile when asked, or ("auto") when the run draws enough samples to pay it back."""
@@ -80,9 +104,17 @@ class CertifySettings:
         return AttackSettings(eps=self.eps, steps=self.attack_steps,
                               noise_draws=self.attack_noise_draws, seed=self.seed)
 
+    def frame_streams(self, i: int) -> dict[str, int]:
+        """Seeds of test frame i's streams (attack, selection, estimation, ...): independent
+        children of the root seed (:mod:`drake_cert.certification.seeds`)."""
+        return streams(self.seed, i)
+
 
 def select_frames(labels: torch.Tensor, count: int, seed: int) -> np.ndarray:
-    """Indices of ``count`` frames, round-robin over classes from a seeded permutation."""
+    """Indices of ``count`` frames, round-robin over classes from a seeded permutation.
+
+    Pass ``seeds.frame_choice_seed(root_seed)`` so that frame choice has a stream of its own.
+    """
     labels = labels.numpy()
     if count > len(labels):
         raise CertificationError(f"{count} frames asked for but the split has {len(labels)}")
@@ -103,9 +135,12 @@ def _attacked(model, images: torch.Tensor, settings: CertifySettings,
         return images
     out = []
     for i in range(0, len(images), chunk):
-        part = dataclasses.replace(settings.attack_settings(), seed=settings.seed + i)
-        out.append(attack(model, images[i:i + chunk], settings.attack, part,
-                          task=settings.task, sigma=settings.sigma))
+        # Each frame attacks with its own stream (random start, noise draws), batched.
+        frame_seeds = [settings.frame_streams(j)["attack"]
+                       for j in range(i, min(i + chunk, len(images)))]
+        out.append(attack(model, images[i:i + chunk], settings.attack,
+                          settings.attack_settings(), task=settings.task, sigma=settings.sigma,
+                          frame_seeds=frame_seeds))
     return torch.cat(out)
 
 
@@ -116,15 +151,20 @@ def _progress(progress: Callable[[Iterable], Iterable] | None, it: Iterable) -> 
 def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
                        stiffness: torch.Tensor, label_names: list[str], table: ConditionsTable,
                        settings: CertifySettings,
-                       progress: Callable[[Iterable], Iterable] | None = None
-                       ) -> tuple[list[dict], dict]:
+                       progress: Callable[[Iterable], Iterable] | None = None,
+                       calibration: tuple | None = None) -> tuple[list[dict], dict]:
     """Certify (sigma > 0) or evaluate (sigma = 0) a classifier on frames, clean and attacked.
 
     For sigma > 0, each frame gets the certificate of :meth:`SmoothedClassifier.certify` with
     the safe set S(a) of the predicted label, at the clean frame and (when attacked) at the
-    attacked frame, and the run-time interval at budget eps at the observed frame.
+    attacked frame, and the run-time interval at budget eps at the observed frame. With
+    ``settings.conformal``, ``calibration = (images, labels)`` of held-out frames calibrates
+    the robust conformal interval (:mod:`drake_cert.certification.conformal`), reported
+    beside the certificate's interval from the same samples. Every frame and purpose draws
+    from its own stream (:meth:`CertifySettings.frame_streams`).
     """
     settings.validate()
+    model = with_precision(model, settings.precision)  # certify, attack, calibrate: one model
     k = len(label_names)
     if settings.sigma > 0:
         check_enough_samples(settings.n, settings.alpha, k)
@@ -145,17 +185,36 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
     per_frame = (settings.n0 + settings.n) * (2 if attacked else 1)
     smooth = SmoothedClassifier(model, k, settings.sigma, device=settings.device,
                                 compile=settings.compile_model(per_frame * len(images)))
+    robust = None
+    if settings.conformal:
+        if calibration is None:
+            raise CertificationError("the conformal interval needs calibration frames")
+        robust = calibrate_robust_conformal(
+            smooth, calibration[0], [int(v) for v in calibration[1]], n=settings.calibration_n,
+            batch_size=settings.batch_size, alpha_c=settings.conformal_alpha_c,
+            beta_cal=settings.conformal_beta, beta_test=settings.conformal_beta,
+            root_seed=settings.seed, progress=progress)
     for i in _progress(progress, range(len(images))):
-        seed = settings.seed * 1_000_003 + i
+        st = settings.frame_streams(i)
         clean = smooth.certify(images[i], settings.n0, settings.n, settings.alpha,
-                               settings.batch_size, safe_set=safe, seed=seed)
+                               settings.batch_size, safe_set=safe, seed=st["estimation"],
+                               selection_seed=st["selection"])
         seen = smooth.certify(adversarial[i], settings.n0, settings.n, settings.alpha,
                               settings.batch_size, safe_set=safe,
-                              seed=seed + 500_000) if attacked else clean
+                              seed=st["attacked_estimation"],
+                              selection_seed=st["attacked_selection"]) if attacked else clean
         rt = runtime_classification_interval(seen, table, settings.preset, settings.eps,
                                              label_names)
         y = float(stiffness[i])
-        records.append({
+        extra = {}
+        if robust is not None:
+            ci = conformal_interval(seen, robust, table, settings.preset, settings.eps,
+                                    label_names)
+            extra = {"conformal_label_set": list(ci.label_set),
+                     "conformal_interval_n_per_rad": list(ci.interval),
+                     "conformal_covered": bool(ci.stiffness_lo_n_per_rad <= y
+                                               <= ci.stiffness_hi_n_per_rad)}
+        records.append(extra | {
             "label": int(labels[i]), "stiffness_n_per_rad": y,
             "clean_prediction": clean.label, "clean_radius": clean.radius,
             "clean_radius_label": clean.radius_for([clean.top_label]) if not clean.abstained
@@ -167,7 +226,41 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
         })
     summary = summarize_classification(records, settings)
     summary["compile_seconds"] = smooth.compile_seconds
+    if robust is not None:
+        summary.update(summarize_conformal(records, robust))
     return records, summary
+
+
+def clopper_pearson_interval(successes: int, trials: int,
+                             level: float = 0.95) -> tuple[float, float]:
+    """Two-sided Clopper-Pearson confidence interval of a share (e.g. a measured coverage)."""
+    a = 1 - level
+    lo = 0.0 if successes == 0 else float(beta_dist.ppf(a / 2, successes,
+                                                         trials - successes + 1))
+    hi = 1.0 if successes == trials else float(beta_dist.ppf(1 - a / 2, successes + 1,
+                                                             trials - successes))
+    return lo, hi
+
+
+def summarize_conformal(records: list[dict], robust) -> dict:
+    """Robust conformal interval metrics: coverage of the true stiffness with its 95 %
+    Clopper-Pearson interval, the guarantee ``1 - alpha_total`` beside it, mean width (N/rad),
+    and the calibration (thresholds q_l, frames per label); also the certificate interval's
+    coverage interval for comparison."""
+    covered = np.array([r["conformal_covered"] for r in records])
+    widths = [r["conformal_interval_n_per_rad"][1] - r["conformal_interval_n_per_rad"][0]
+              for r in records]
+    old = int(sum(bool(r["covered"]) for r in records))
+    return {
+        "conformal_interval_coverage": float(covered.mean()),
+        "conformal_interval_coverage_ci95": list(clopper_pearson_interval(int(covered.sum()),
+                                                                          len(covered))),
+        "conformal_guarantee": 1 - robust.alpha_total,
+        "conformal_interval_width_mean": float(np.mean(widths)),
+        "conformal_thresholds": {str(k): v for k, v in robust.thresholds.items()},
+        "conformal_calibration_frames": {str(k): v for k, v in robust.frames_per_label.items()},
+        "interval_coverage_ci95": list(clopper_pearson_interval(old, len(records))),
+    }
 
 
 def summarize_classification(records: list[dict], settings: CertifySettings) -> dict:
@@ -239,6 +332,7 @@ def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torc
     gets ``certify_interval`` at budget eps at the observed frame and the run-time interval.
     """
     settings.validate()
+    model = with_precision(model, settings.precision)  # certify, attack, calibrate: one model
     if settings.sigma > 0:
         percentile_bound_indices(settings.n, settings.eps, settings.sigma, settings.alpha)
     adversarial = _attacked(model, images, settings)
@@ -255,17 +349,26 @@ def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torc
     if calibration is None:
         raise CertificationError("median smoothing needs calibration frames for beta")
     cal_images, cal_stiffness, cal_labels = calibration
+    need = min_calibration_frames(settings.alpha_c)
+    counts = torch.bincount(torch.as_tensor(cal_labels), minlength=int(labels.max()) + 1)
+    if len(cal_labels) == 0 or int(counts[torch.unique(labels)].min()) < need:
+        raise CertificationError(
+            f"calibration frames per label {counts.tolist()} are too few for the conformal "
+            f"beta at alpha_c = {settings.alpha_c:g}: each label needs at least {need}")
     samples = settings.calibration_n * len(cal_images) + settings.n * len(images)
     smooth = MedianSmoothedRegressor(model, settings.sigma, device=settings.device,
                                      compile=settings.compile_model(samples))
     cal = calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
                               n=settings.calibration_n, batch_size=settings.batch_size,
                               alpha_m=settings.alpha_m, alpha_c=settings.alpha_c,
-                              seed=settings.seed + 77, progress=progress)
+                              progress=progress,
+                              frame_seeds=[stream_seed(settings.seed, i, "calibration",
+                                                       split="calibration")
+                                           for i in range(len(cal_images))])
     for i in _progress(progress, range(len(images))):
         median, lower, upper = smooth.certify_interval(
             adversarial[i], settings.eps, settings.n, settings.alpha, settings.batch_size,
-            seed=settings.seed * 1_000_003 + i)
+            seed=settings.frame_streams(i)["estimation"])
         lo, hi = runtime_interval(lower, upper, cal.beta, envelope)
         y = float(stiffness[i])
         records.append({"label": int(labels[i]), "stiffness_n_per_rad": y,

@@ -150,8 +150,11 @@ def load_image_folder(path: str | Path, *, preset: str | None = None, size: int 
     ``preset`` the folders must be labels of that preset and the label order is the preset's;
     without it the folders must exactly be some preset's labels (that preset is used), or
     else names from the conditions table (ordered grippiest first, preset ""). Images are
-    converted to RGB and resized to ``size`` x ``size`` (bilinear). Stiffness is unknown
-    (NaN). Raises :class:`ConfigError` for a missing folder, unknown labels or no images.
+    converted to RGB and resized to ``size`` x ``size`` (bilinear). A ``path/stiffness.csv``
+    (columns ``file,label,stiffness_n_per_rad``, ``file`` relative to ``path``; what
+    ``drake-cert generate --export`` writes) gives each listed frame its true stiffness; frames
+    it does not list, or every frame without the file, have unknown stiffness (NaN). Raises
+    :class:`ConfigError` for a missing folder, unknown labels, no images or a malformed CSV.
     """
     from PIL import Image
 
@@ -164,7 +167,8 @@ def load_image_folder(path: str | Path, *, preset: str | None = None, size: int 
     if not found:
         raise ConfigError(f"image folder {str(root)!r} has no class sub-folders")
     label_names, preset_name = _label_order(table, found, preset, root)
-    images, labels = [], []
+    known_stiffness = read_stiffness_csv(root / STIFFNESS_CSV)
+    images, labels, stiffness = [], [], []
     for d in folders:
         files = sorted(f for f in d.iterdir() if f.suffix.lower() in IMAGE_SUFFIXES)
         for f in files:
@@ -176,13 +180,42 @@ def load_image_folder(path: str | Path, *, preset: str | None = None, size: int 
                 raise ConfigError(f"cannot read image {str(f)!r}: {e}") from None
             images.append(arr)
             labels.append(label_names.index(d.name))
+            stiffness.append(known_stiffness.get(f.relative_to(root).as_posix(), math.nan))
     if not images:
         raise ConfigError(f"image folder {str(root)!r} holds no PNG/JPEG images "
                           f"in its sub-folders {found}")
     x = torch.from_numpy(np.stack(images)).permute(0, 3, 1, 2).float().div_(255.0).contiguous()
     y = torch.tensor(labels, dtype=torch.int64)
-    c = torch.full((len(labels),), math.nan, dtype=torch.float32)
+    c = torch.tensor(stiffness, dtype=torch.float32)
     return FrameSet(x, y, c, label_names, preset_name)
+
+
+STIFFNESS_CSV = "stiffness.csv"  # beside the class folders: file,label,stiffness_n_per_rad
+
+
+def read_stiffness_csv(path: Path) -> dict[str, float]:
+    """``{relative file: stiffness (N/rad)}`` from a stiffness CSV; {} when there is none."""
+    import csv
+
+    if not path.exists():
+        return {}
+    try:
+        with open(path, newline="") as f:
+            rows = list(csv.DictReader(f))
+    except (OSError, UnicodeDecodeError, csv.Error) as e:
+        raise ConfigError(f"cannot read {str(path)!r}: {e}") from None
+    out = {}
+    for i, row in enumerate(rows, start=2):
+        try:
+            value = float(row["stiffness_n_per_rad"])
+            out[str(row["file"]).strip()] = value
+        except (KeyError, TypeError, ValueError):
+            raise ConfigError(f"{path}:{i}: expected columns file,label,stiffness_n_per_rad "
+                              f"with a number, got {dict(row)}") from None
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"{path}:{i}: stiffness_n_per_rad = {value!r} must be a "
+                              "positive number of N/rad")
+    return out
 
 
 def _label_order(table: ConditionsTable, found: list[str], preset: str | None,

@@ -39,7 +39,6 @@ from drake_cert.errors import ConfigError
 from drake_cert.perception.frameset import FrameSet
 
 CHUNK = 250  # frames rendered per batch
-SUPERSAMPLE = 1  # render at this multiple of the size and average blocks (anti-aliasing)
 TEXTURE = 64  # side of the periodic noise textures
 
 
@@ -229,34 +228,76 @@ def _col(t: torch.Tensor) -> torch.Tensor:
 
 # --------------------------------------------------------------------------- the renderer
 
+@dataclasses.dataclass
+class _Geometry:
+    """Per-pixel camera geometry of a batch (tensors [n, size, size] unless noted)."""
+
+    y: torch.Tensor  # pixel-centre row in [0, 1], 0 at the top
+    x: torch.Tensor  # pixel-centre column in [0, 1]
+    horizon: torch.Tensor  # [n, 1, 1] horizon row h
+    road_half: torch.Tensor  # [n, 1, 1] half road width (ground X units)
+    depth_row: torch.Tensor  # y - h, clamped to half a pixel
+    ground: torch.Tensor  # 1 below the horizon, 0 above
+    Z: torch.Tensor  # ground depth 1 / (y - h)
+    X: torch.Tensor  # ground lateral position (x - x_v) / (y - h) + lateral offset
+    pixel_x: torch.Tensor  # ground X units per pixel
+
+
 def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
                   generator: torch.Generator, size: int = 64,
                   contrast: float = 1.0) -> torch.Tensor:
     """Render one frame per entry of ``severity`` [n]: float32 [n, 3, size, size] in [0, 1].
 
-    Random draws come from ``generator`` in a fixed order, so the output is deterministic.
+    Random draws come from ``generator`` in a fixed order (geometry, sky, ground, lane marks,
+    shadows, wetness, snow, precipitation, camera), so the output is deterministic.
     ``contrast`` scales the camera's contrast about the frame's mean colour.
     """
     g = generator
     n = severity.shape[0]
     s = severity.float()
-    hi_res = size * SUPERSAMPLE
-    coords = (torch.arange(hi_res, dtype=torch.float32) + 0.5) / hi_res
-    y = coords[None, :, None].expand(n, hi_res, hi_res)
-    x = coords[None, None, :].expand(n, hi_res, hi_res)
+    geo = _camera_geometry(n, size, g)
+    sky, low, zenith, trees, tree_col, tree_tex = _sky_and_trees(style, geo, n, g)
+    verge, verge_tex, road, on_road, fine = _verge_and_surface(style, s, geo, n, g)
+    if style.lane_marks:
+        road = _lane_marks(road, geo, n, g)
+    if style.shadows:
+        road, verge = _tree_shadows(road, verge, geo, n, g)
+    if style.wetness[1] > 0:
+        road = _wet_road(road, lerp(style.wetness, s), geo, low, zenith, n, g)
+    if style.snow_cover[1] > 0:
+        road, verge, tree_col = _snow_cover(style, s, road, verge, tree_col, geo,
+                                            fine, verge_tex, tree_tex, n, g)
+    img = _mix(verge, road, on_road[:, None])
+    img = torch.where(geo.ground[:, None] > 0, img,
+                      torch.where(trees[:, None] > 0, tree_col, sky))
+    img = _fog(img, lerp(style.fog, s), geo, low)
+    img = _precipitation(img, style, s, size, n, g)
+    return camera_response(img, g, contrast=contrast)
 
-    # camera and road geometry (class-independent)
+
+def _camera_geometry(n: int, size: int, g: torch.Generator) -> _Geometry:
+    """Pixel grid, random horizon, vanishing point, road width and lateral offset."""
+    coords = (torch.arange(size, dtype=torch.float32) + 0.5) / size
+    y = coords[None, :, None].expand(n, size, size)
+    x = coords[None, None, :].expand(n, size, size)
     horizon = _uniform(n, 0.36, 0.5, g)[:, None, None]
     x_vanish = _uniform(n, 0.35, 0.65, g)[:, None, None]
     road_half = _uniform(n, 0.8, 1.25, g)[:, None, None]
     lateral = _uniform(n, -0.3, 0.3, g)[:, None, None]
-    depth_row = (y - horizon).clamp_min(0.5 / hi_res)
-    ground = (y > horizon).float()
-    Z = 1.0 / depth_row
-    X = (x - x_vanish) / depth_row + lateral
-    pixel_x = 1.0 / (hi_res * depth_row)  # ground X units per pixel
+    depth_row = (y - horizon).clamp_min(0.5 / size)
+    return _Geometry(y=y, x=x, horizon=horizon, road_half=road_half, depth_row=depth_row,
+                     ground=(y > horizon).float(), Z=1.0 / depth_row,
+                     X=(x - x_vanish) / depth_row + lateral,
+                     pixel_x=1.0 / (size * depth_row))
 
-    # sky: clear gradient vs overcast, clouds, tree line (overcast per class, or at random)
+
+def _sky_and_trees(style: ConditionStyle, geo: _Geometry, n: int, g: torch.Generator):
+    """Sky (clear gradient vs overcast, clouds, sun glow when sunny) and the tree line.
+
+    Returns (sky, low, zenith, trees, tree_col, tree_tex); ``low`` and ``zenith`` are the sky
+    colours at the horizon and overhead (a wet road reflects them).
+    """
+    x, y, horizon = geo.x, geo.y, geo.horizon
     if style.random_sky:
         overcast = torch.rand(n, generator=g)
     else:
@@ -280,17 +321,25 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
     trees = ((y > horizon - tree_h) & (y <= horizon)).float()
     tree_tex = sample_periodic(fractal_noise(n, g, beta=0.8), x * 3, y * 3)
     tree_col = _rgb(0.16, 0.22, 0.13) * (1 + 0.25 * tree_tex[:, None])
+    return sky, low, zenith, trees, tree_col, tree_tex
 
-    # verge (grass or dirt, class-independent) and road surface
+
+def _verge_and_surface(style: ConditionStyle, s: torch.Tensor, geo: _Geometry, n: int,
+                       g: torch.Generator):
+    """Verge (grass or dirt, class-independent) and road surface (asphalt, cobbles, sand).
+
+    Returns (verge, verge_tex, road, on_road, fine): ``on_road`` is the road's pixel coverage.
+    """
+    X, Z, pixel_x = geo.X, geo.Z, geo.pixel_x
     verge_kind = torch.rand(n, generator=g)
     verge_base = _mix(_rgb(0.26, 0.4, 0.17), _rgb(0.45, 0.38, 0.27), _col(verge_kind))
     verge_tex = sample_periodic(fractal_noise(n, g, beta=1.0), X / 2, Z / 4)
     verge = verge_base * (1 + 0.25 * verge_tex[:, None])
-    on_road = ((road_half - X.abs()) / pixel_x + 0.5).clamp(0.0, 1.0)
+    on_road = ((geo.road_half - X.abs()) / pixel_x + 0.5).clamp(0.0, 1.0)
     grain_amp = lerp(style.grain, s)[:, None, None]
     fine = sample_periodic(fractal_noise(n, g, beta=0.3), X / 2, Z / 4)
     coarse = sample_periodic(fractal_noise(n, g, beta=1.4), X / 6, Z / 20)
-    near = (depth_row * 6).clamp(0.0, 1.0)  # grain fades towards the horizon
+    near = (geo.depth_row * 6).clamp(0.0, 1.0)  # grain fades towards the horizon
     if style.surface == "asphalt":
         base = _rgb(0.34, 0.34, 0.36) * (1 + 0.06 * coarse[:, None])
         road = base * (1 + (3 * grain_amp * near * fine)[:, None])
@@ -298,69 +347,81 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
         road = _cobblestones(X, Z, s, grain_amp * near, fine, n, g)
     elif style.surface == "sand":
         road = _sand(X, Z, s, grain_amp * near, fine, coarse, n, g)
-        on_road = ((road_half - X.abs() + 0.15 * coarse) / (3 * pixel_x) + 0.5).clamp(0.0, 1.0)
+        on_road = ((geo.road_half - X.abs() + 0.15 * coarse) / (3 * pixel_x) + 0.5
+                   ).clamp(0.0, 1.0)
     else:
         raise ConfigError(f"unknown surface {style.surface!r}")
+    return verge, verge_tex, road, on_road, fine
 
-    # lane marks: solid edge lines, dashed centre line
-    if style.lane_marks:
-        def line(centre, half_width):
-            cover = (half_width - (X - centre).abs()) / pixel_x + 0.5
-            return cover.clamp(0.0, 1.0) * (2 * half_width / pixel_x).clamp(max=1.0)
-        phase = torch.rand(n, generator=g)[:, None, None]
-        dash = (torch.remainder(Z / 3.0 + phase, 1.0) < 0.45).float()
-        marks = (line(road_half - 0.06, 0.03) + line(-road_half + 0.06, 0.03)
-                 + dash * line(torch.zeros_like(X), 0.025)).clamp(max=1.0)
-        marks = marks * torch.exp(-Z / 60)
-        road = _mix(road, _rgb(0.85, 0.85, 0.8), marks[:, None])
 
-    # sunny: hard tree shadows across the ground
-    if style.shadows:
-        shade_noise = sample_periodic(fractal_noise(n, g, beta=1.3), X / 5, Z / 12)
-        cut = _uniform(n, 0.0, 0.9, g)[:, None, None]
-        shadow = ((shade_noise - cut) / 0.08).clamp(0.0, 1.0)
-        road = road * (1 - 0.55 * shadow[:, None])
-        verge = verge * (1 - 0.55 * shadow[:, None])
+def _lane_marks(road: torch.Tensor, geo: _Geometry, n: int, g: torch.Generator) -> torch.Tensor:
+    """Solid edge lines and a dashed centre line, anti-aliased, fading with depth."""
+    X, pixel_x, road_half = geo.X, geo.pixel_x, geo.road_half
 
-    # wet road: darker, reflects the (mirrored) sky, puddles at high wetness
-    wet = lerp(style.wetness, s)
-    if style.wetness[1] > 0:
-        mirror_h = ((y - horizon) / horizon).clamp(0.0, 1.0)
-        mirrored = _mix(low, zenith, mirror_h[:, None].sqrt())
-        fresnel = 0.25 + 0.75 * torch.exp(-depth_row * 5)
-        puddle_noise = sample_periodic(fractal_noise(n, g, beta=1.5), X / 3, Z / 8)
-        puddle = ((puddle_noise - (2.2 - 2.0 * wet[:, None, None])) / 0.15).clamp(0.0, 1.0)
-        reflect = (_col(wet) * 0.55 * fresnel[:, None]).clamp(max=1.0)
-        reflect = torch.maximum(reflect, 0.85 * puddle[:, None])
-        road = road * (1 - 0.45 * _col(wet))
-        road = _mix(road, mirrored * 0.8, reflect)
+    def line(centre, half_width):
+        cover = (half_width - (X - centre).abs()) / pixel_x + 0.5
+        return cover.clamp(0.0, 1.0) * (2 * half_width / pixel_x).clamp(max=1.0)
 
-    # snow: verge fully white, road partly covered except in the tyre tracks
+    phase = torch.rand(n, generator=g)[:, None, None]
+    dash = (torch.remainder(geo.Z / 3.0 + phase, 1.0) < 0.45).float()
+    marks = (line(road_half - 0.06, 0.03) + line(-road_half + 0.06, 0.03)
+             + dash * line(torch.zeros_like(X), 0.025)).clamp(max=1.0)
+    marks = marks * torch.exp(-geo.Z / 60)
+    return _mix(road, _rgb(0.85, 0.85, 0.8), marks[:, None])
+
+
+def _tree_shadows(road, verge, geo: _Geometry, n: int, g: torch.Generator):
+    """Sunny: hard tree shadows across road and verge."""
+    shade_noise = sample_periodic(fractal_noise(n, g, beta=1.3), geo.X / 5, geo.Z / 12)
+    cut = _uniform(n, 0.0, 0.9, g)[:, None, None]
+    shadow = ((shade_noise - cut) / 0.08).clamp(0.0, 1.0)
+    return road * (1 - 0.55 * shadow[:, None]), verge * (1 - 0.55 * shadow[:, None])
+
+
+def _wet_road(road, wet: torch.Tensor, geo: _Geometry, low, zenith, n: int,
+              g: torch.Generator) -> torch.Tensor:
+    """Wet road (wetness ``wet`` [n]): darker, reflects the mirrored sky, puddles when very wet."""
+    mirror_h = ((geo.y - geo.horizon) / geo.horizon).clamp(0.0, 1.0)
+    mirrored = _mix(low, zenith, mirror_h[:, None].sqrt())
+    fresnel = 0.25 + 0.75 * torch.exp(-geo.depth_row * 5)
+    puddle_noise = sample_periodic(fractal_noise(n, g, beta=1.5), geo.X / 3, geo.Z / 8)
+    puddle = ((puddle_noise - (2.2 - 2.0 * wet[:, None, None])) / 0.15).clamp(0.0, 1.0)
+    reflect = (_col(wet) * 0.55 * fresnel[:, None]).clamp(max=1.0)
+    reflect = torch.maximum(reflect, 0.85 * puddle[:, None])
+    road = road * (1 - 0.45 * _col(wet))
+    return _mix(road, mirrored * 0.8, reflect)
+
+
+def _snow_cover(style: ConditionStyle, s, road, verge, tree_col, geo: _Geometry, fine,
+                verge_tex, tree_tex, n: int, g: torch.Generator):
+    """Snow: verge white, road partly covered except in the tyre tracks, snow on the trees."""
+    X = geo.X
     cover = lerp(style.snow_cover, s)
-    if style.snow_cover[1] > 0:
-        snow_col = _rgb(0.9, 0.92, 0.96)
-        drift = sample_periodic(fractal_noise(n, g, beta=1.1), X / 2, Z / 6)
-        tracks = torch.exp(-((X.abs() - 0.45 * road_half) / 0.14) ** 2)
-        amount = ((drift * 0.5 + 2 * cover[:, None, None] - 1) * 2.5).clamp(0.0, 1.0)
-        amount = amount * (1 - 0.85 * tracks)
-        road = _mix(road, snow_col * (1 + 0.04 * fine[:, None]), amount[:, None])
-        verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
-                     _col(lerp(style.verge_snow, s)))
-        tree_col = _mix(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
+    snow_col = _rgb(0.9, 0.92, 0.96)
+    drift = sample_periodic(fractal_noise(n, g, beta=1.1), X / 2, geo.Z / 6)
+    tracks = torch.exp(-((X.abs() - 0.45 * geo.road_half) / 0.14) ** 2)
+    amount = ((drift * 0.5 + 2 * cover[:, None, None] - 1) * 2.5).clamp(0.0, 1.0)
+    amount = amount * (1 - 0.85 * tracks)
+    road = _mix(road, snow_col * (1 + 0.04 * fine[:, None]), amount[:, None])
+    verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
+                 _col(lerp(style.verge_snow, s)))
+    tree_col = _mix(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
+    return road, verge, tree_col
 
-    img = _mix(verge, road, on_road[:, None])
-    img = torch.where(ground[:, None] > 0, img, torch.where(trees[:, None] > 0, tree_col, sky))
 
-    # fog: extinction with depth; the sky blends into the fog colour
-    fog = lerp(style.fog, s)[:, None, None]
+def _fog(img, fog: torch.Tensor, geo: _Geometry, low) -> torch.Tensor:
+    """Fog (extinction ``fog`` [n] per unit depth x 0.1); the sky blends into the fog colour."""
+    fog = fog[:, None, None]
     fog_col = _mix(low, _rgb(0.75, 0.76, 0.78), 0.6)
-    depth = torch.where(ground > 0, Z, torch.full_like(Z, 80.0))
+    depth = torch.where(geo.ground > 0, geo.Z, torch.full_like(geo.Z, 80.0))
     fog_amount = 1 - torch.exp(-fog * depth * 0.1)
-    fog_amount = torch.where(ground > 0, fog_amount, fog_amount * 0.8)
-    img = _mix(img, fog_col, fog_amount[:, None])
+    fog_amount = torch.where(geo.ground > 0, fog_amount, fog_amount * 0.8)
+    return _mix(img, fog_col, fog_amount[:, None])
 
-    # camera: downsample (anti-aliasing), then precipitation at camera resolution
-    img = F.avg_pool2d(img, SUPERSAMPLE) if SUPERSAMPLE > 1 else img
+
+def _precipitation(img, style: ConditionStyle, s, size: int, n: int,
+                   g: torch.Generator) -> torch.Tensor:
+    """Rain streaks and snow flakes at camera resolution."""
     density = lerp(style.rain_density, s)
     if style.rain_density[1] > 0:
         length = lerp(style.streak_length_px, s) * size / 64 * _uniform(n, 0.8, 1.2, g)
@@ -375,7 +436,7 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
         k = 2 * int(math.ceil(1.6 * size / 64)) + 1
         flakes = sparse_kernel_splat(flakes_d, disc_kernels(radius, k), size, g)
         img = _mix(img, _rgb(0.95, 0.95, 0.97).expand_as(img), 0.8 * flakes[:, None])
-    return camera_response(img, g, contrast=contrast)
+    return img
 
 
 def _cobblestones(X, Z, s, amp, fine, n, g) -> torch.Tensor:

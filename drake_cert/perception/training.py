@@ -89,65 +89,27 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
     torch.manual_seed(seed)
     model = SmallResNet(len(train_set.label_names), width=cfg.width)
-    decay, no_decay = [], []
-    for p in model.parameters():
-        (no_decay if p.ndim == 1 else decay).append(p)
-    optimizer = torch.optim.SGD([{"params": decay, "weight_decay": cfg.weight_decay},
-                                 {"params": no_decay, "weight_decay": 0.0}],
-                                lr=cfg.learning_rate, momentum=cfg.momentum, nesterov=True)
+    optimizer = make_optimizer(model, cfg)
     n = len(train_set)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
     total = steps_per_epoch * cfg.epochs
     signature = {"config": dataclasses.asdict(cfg), "sigma": float(sigma), "seed": int(seed),
                  "frames": n, "labels": list(train_set.label_names)}
-    start_epoch, seconds = 0, 0.0
-    history: list[dict] = []
+    start_epoch, seconds, history = 0, 0.0, []
     if checkpoint is not None and Path(checkpoint).exists():
-        state = torch.load(checkpoint, map_location="cpu", weights_only=True)
-        if state.get("signature") == signature:
-            model.load_state_dict(state["model"])
-            optimizer.load_state_dict(state["optimizer"])
-            start_epoch, seconds = int(state["epoch"]), float(state["seconds"])
-            history = list(state["history"])
-            if progress:
-                print(f"{description}: resuming after epoch {start_epoch}/{cfg.epochs}",
-                      file=sys.stderr)
-        elif progress:
-            print(f"{description}: checkpoint {checkpoint} is for another run; starting over",
-                  file=sys.stderr)
-    loss_fn = nn.CrossEntropyLoss()
+        start_epoch, seconds, history = _resume(checkpoint, signature, model, optimizer,
+                                                progress=progress, description=description,
+                                                epochs=cfg.epochs)
     for epoch in range(start_epoch, cfg.epochs):
         t0 = time.perf_counter()
-        model.train()
-        gen = epoch_generator(seed, epoch)
-        order = torch.randperm(n, generator=gen)
-        flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
-        total_loss, correct = 0.0, 0
-        bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
-                   file=sys.stderr, disable=not progress, leave=False)
-        for b in bar:
-            idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
-            x = train_set.images[idx]
-            flip = flips[idx]
-            x = torch.where(flip[:, None, None, None], x.flip(-1), x)
-            x = add_gaussian_noise(x, sigma, gen)
-            y = train_set.labels[idx]
-            for group in optimizer.param_groups:
-                group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
-            logits = model(x)
-            loss = loss_fn(logits, y)
-            optimizer.zero_grad(set_to_none=True)
-            loss.backward()
-            optimizer.step()
-            total_loss += float(loss.detach()) * len(idx)
-            correct += int((logits.argmax(1) == y).sum())
-            bar.set_postfix(loss=f"{float(loss.detach()):.3f}")
-        bar.close()
+        loss, accuracy = train_epoch(model, optimizer, train_set, sigma=sigma, seed=seed,
+                                     epoch=epoch, config=cfg, progress=progress,
+                                     description=description)
         seconds += time.perf_counter() - t0
-        history.append({"epoch": epoch + 1, "loss": total_loss / n, "accuracy": correct / n})
+        history.append({"epoch": epoch + 1, "loss": loss, "accuracy": accuracy})
         if progress:
-            print(f"{description}: epoch {epoch + 1}/{cfg.epochs} loss {total_loss / n:.4f} "
-                  f"train accuracy {correct / n:.4f}", file=sys.stderr)
+            print(f"{description}: epoch {epoch + 1}/{cfg.epochs} loss {loss:.4f} "
+                  f"train accuracy {accuracy:.4f}", file=sys.stderr)
         if checkpoint is not None:
             buf = _io.BytesIO()
             torch.save({"signature": signature, "epoch": epoch + 1, "seconds": seconds,
@@ -162,6 +124,74 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
                "epochs": cfg.epochs, "steps": total, "train_seconds": round(seconds, 2),
                "train_frames": n, "config": dataclasses.asdict(cfg)}
     return model, metrics
+
+
+def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.SGD:
+    """SGD with Nesterov momentum; weight decay on weights only (not biases or norms)."""
+    decay, no_decay = [], []
+    for p in model.parameters():
+        (no_decay if p.ndim == 1 else decay).append(p)
+    return torch.optim.SGD([{"params": decay, "weight_decay": config.weight_decay},
+                            {"params": no_decay, "weight_decay": 0.0}],
+                           lr=config.learning_rate, momentum=config.momentum, nesterov=True)
+
+
+def _resume(checkpoint, signature: dict, model, optimizer, *, progress: bool,
+            description: str, epochs: int) -> tuple[int, float, list]:
+    """Load a per-epoch checkpoint of the same run into model and optimizer.
+
+    Returns (epochs done, seconds spent, history); (0, 0.0, []) when the file is for another run.
+    """
+    state = torch.load(checkpoint, map_location="cpu", weights_only=True)
+    if state.get("signature") != signature:
+        if progress:
+            print(f"{description}: checkpoint {checkpoint} is for another run; starting over",
+                  file=sys.stderr)
+        return 0, 0.0, []
+    model.load_state_dict(state["model"])
+    optimizer.load_state_dict(state["optimizer"])
+    start_epoch = int(state["epoch"])
+    if progress:
+        print(f"{description}: resuming after epoch {start_epoch}/{epochs}", file=sys.stderr)
+    return start_epoch, float(state["seconds"]), list(state["history"])
+
+
+def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, sigma: float, seed: int,
+                epoch: int, config: TrainConfig, progress: bool = False,
+                description: str = "train") -> tuple[float, float]:
+    """One epoch (0-based ``epoch``) of noise-augmented SGD; its order, flips and noise come
+    from :func:`epoch_generator` (seed, epoch). Returns mean loss and accuracy on noisy frames."""
+    cfg = config
+    n = len(train_set)
+    steps_per_epoch = math.ceil(n / cfg.batch_size)
+    total = steps_per_epoch * cfg.epochs
+    loss_fn = nn.CrossEntropyLoss()
+    model.train()
+    gen = epoch_generator(seed, epoch)
+    order = torch.randperm(n, generator=gen)
+    flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
+    total_loss, correct = 0.0, 0
+    bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
+               file=sys.stderr, disable=not progress, leave=False)
+    for b in bar:
+        idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
+        x = train_set.images[idx]
+        flip = flips[idx]
+        x = torch.where(flip[:, None, None, None], x.flip(-1), x)
+        x = add_gaussian_noise(x, sigma, gen)
+        y = train_set.labels[idx]
+        for group in optimizer.param_groups:
+            group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
+        logits = model(x)
+        loss = loss_fn(logits, y)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        total_loss += float(loss.detach()) * len(idx)
+        correct += int((logits.argmax(1) == y).sum())
+        bar.set_postfix(loss=f"{float(loss.detach()):.3f}")
+    bar.close()
+    return total_loss / n, correct / n
 
 
 @torch.no_grad()
@@ -232,3 +262,78 @@ def evaluate_mse(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
     """Mean squared error of predicted vs true stiffness, in (N/rad)^2."""
     pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double()
     return float(((pred - frames.stiffness_n_per_rad.double()) ** 2).mean())
+
+
+def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
+                               seed: int = 0, config: TrainConfig | None = None,
+                               init: SmallResNet | None = None, progress: bool = False,
+                               description: str = "train regressor") -> tuple[SmallResNet, dict]:
+    """A stiffness regressor trained end to end under Gaussian noise (issue 10, item 2).
+
+    The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
+    whole network learns the stiffness, which the generator ties to the rendering intensity
+    within a condition. Model: a :class:`SmallResNet` with one output (backbone copied from
+    ``init``, e.g. the classifier at the same sigma, when given). Loss: Huber (smooth L1,
+    beta 0.1) on ``(y - mean y) / 1e5`` at ``x + N(0, sigma^2 I)`` (plus flips), with the
+    classifier's schedule (:class:`TrainConfig`, :func:`epoch_generator` streams). After
+    training the output layer is rescaled to N/rad, so ``model(x)`` is [B, 1] stiffness in
+    N/rad, as :class:`~drake_cert.certification.regressor.MedianSmoothedRegressor` expects.
+    ``save_model`` stores it like a classifier with one output (``num_classes`` 1).
+    Returns the model (eval mode) and metrics: final-epoch training MSE in (N/rad)^2, seconds.
+    """
+    import time
+
+    if torch.isnan(train_set.stiffness_n_per_rad).any():
+        raise ValueError("train_regressor_end_to_end needs the true stiffness of every frame")
+    cfg = config or TrainConfig()
+    if epochs is not None:
+        cfg = dataclasses.replace(cfg, epochs=int(epochs))
+    torch.manual_seed(seed)
+    model = SmallResNet(1, width=cfg.width)
+    if init is not None:
+        model.backbone.load_state_dict(init.backbone.state_dict())
+    optimizer = make_optimizer(model, cfg)
+    n = len(train_set)
+    target = train_set.stiffness_n_per_rad.double()
+    y_mean = float(target.mean())
+    scaled = ((target - y_mean) / STIFFNESS_UNIT).float()
+    steps_per_epoch = math.ceil(n / cfg.batch_size)
+    total = steps_per_epoch * cfg.epochs
+    loss_fn = nn.SmoothL1Loss(beta=0.1)
+    start = time.perf_counter()
+    mse = math.nan
+    for epoch in range(cfg.epochs):
+        model.train()
+        gen = epoch_generator(seed, 50_000 + epoch)
+        order = torch.randperm(n, generator=gen)
+        flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
+        sq = 0.0
+        bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
+                   file=sys.stderr, disable=not progress, leave=False)
+        for b in bar:
+            idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
+            x = train_set.images[idx]
+            x = torch.where(flips[idx][:, None, None, None], x.flip(-1), x)
+            x = add_gaussian_noise(x, sigma, gen)
+            for group in optimizer.param_groups:
+                group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
+            pred = model(x).squeeze(-1)
+            loss = loss_fn(pred, scaled[idx])
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+            sq += float(((pred.detach() - scaled[idx]) ** 2).sum())
+        bar.close()
+        mse = sq / n * STIFFNESS_UNIT**2
+        if progress:
+            print(f"{description}: epoch {epoch + 1}/{cfg.epochs} mse {mse:.4g} (N/rad)^2",
+                  file=sys.stderr)
+    with torch.no_grad():  # output in N/rad: y = 1e5 * out + mean
+        model.fc.weight.mul_(STIFFNESS_UNIT)
+        model.fc.bias.mul_(STIFFNESS_UNIT).add_(y_mean)
+    model.eval()
+    metrics = {"train_mse_n_per_rad_sq": mse, "epochs": cfg.epochs, "steps": total,
+               "train_seconds": round(time.perf_counter() - start, 2), "train_frames": n,
+               "init": "classifier backbone" if init is not None else "fresh",
+               "config": dataclasses.asdict(cfg)}
+    return model, metrics

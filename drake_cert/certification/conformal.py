@@ -1,0 +1,249 @@
+"""Adversarially robust conformal label sets and stiffness intervals (DESIGN 3, "Coverage without
+the standing assumption").
+
+The run-time interval of :func:`~drake_cert.certification.intervals.runtime_classification_interval`
+says how far the prediction can be pushed; it holds the TRUE stiffness only if the smoothed
+classifier is right on the clean frame. This module builds an interval that holds the true
+stiffness with probability at least ``1 - alpha_total`` under any L2 perturbation of at most
+eps, with no assumption that the classifier is right: randomized-smoothed conformal prediction
+(Gendler et al. 2022, RSCP) with a finite-sample Monte-Carlo correction in the spirit of Yan et
+al. 2024 (RSCP+), Mondrian (per true label), on the smoothed vote score.
+
+Score. ``p_l(x) = P(f(x + N(0, sigma^2 I)) = l)``, the smoothed vote share of label l (a
+conformity score: high means "x looks like l"). Cohen et al. Lemma 2: ``Phi^-1(p_l(x))`` is
+1/sigma-Lipschitz in x, so for ``||x' - x||_2 <= eps``:
+``p_l(x') >= Phi(Phi^-1(p_l(x)) - eps/sigma)``.
+
+Calibration (per label l, on ``n_l`` held-out frames of true label l, each with its own noise
+stream): ``r_i = CPlow(k_i; n, beta_cal)``, the one-sided Clopper-Pearson lower bound at level
+``beta_cal`` on ``p_l(x_i)`` from ``k_i`` votes for l among n noisy samples; ``q_l = r_(j)``, the
+j-th smallest, ``j = floor(alpha_c (n_l + 1))`` (``q_l = 0`` when ``j = 0``: too few frames for
+alpha_c, label l is then always in the set). The run-time threshold at budget eps is
+``t_l(eps) = Phi(Phi^-1(q_l) - eps/sigma)``.
+
+Run time, at the observed frame x' (n fresh samples, ``k'_l`` votes per label): the label set is
+``C(x') = {l : CPup(k'_l; n, beta_test) >= t_l(eps)}``, the interval is the hull of the
+stiffness intervals of the contiguous friction range from the first to the last label of
+``C(x')`` (the envelope when C is empty).
+
+Argument. Let (x, y) be the clean test frame, x' = x + delta with ``||delta|| <= eps`` chosen by
+an attacker who may know x, the model and the calibration but not the test noise.
+(a) Imagine n fresh noisy samples at the clean x and the score r = CPlow(k; n, beta_cal) they
+    would give label y. Calibration frames of label y and (x, y) are exchangeable, and so are
+    their scores (each frame's noise is drawn independently from the same law), so
+    ``P(r >= q_y) >= 1 - alpha_c`` (split conformal, lower tail; Vovk et al., Mondrian).
+(b) ``P(p_y(x) >= r) >= 1 - beta_cal`` (Clopper-Pearson). With (a): ``p_y(x) >= q_y`` with
+    probability ``>= 1 - alpha_c - beta_cal``; the imagined samples are only a device of the
+    proof and need never be drawn.
+(c) Then ``p_y(x') >= t_y(eps)`` for every such x' (Lipschitz bound, deterministic).
+(d) The run-time samples at x' are independent of everything above: ``CPup(k'_y) >= p_y(x')``
+    with probability ``>= 1 - beta_test``. Then ``y in C(x')``.
+(e) The condition table's interval of label y holds the true stiffness (true of the synthetic
+    generator by construction; an assumption for real data), so the hull holds it.
+So ``P(C_true in interval) >= 1 - alpha_total``, ``alpha_total = alpha_c + beta_cal +
+beta_test``, for each true label (Mondrian) and hence marginally, over calibration frames,
+test frame and all noise. Assumptions: exchangeability of calibration and test frames within a
+label (held-out frames of the same generator: yes; real deployment: a stated assumption, it
+fails under distribution shift); the attacker does not know the test noise; ``||delta|| <= eps``.
+Not claimed: coverage conditional on one given frame, or for frames of another distribution.
+
+Defaults: alpha_c = 0.008, beta_cal = beta_test = 0.001, alpha_total = 0.01. alpha_c needs at
+least ``1/alpha_c - 1`` calibration frames per label (124 at 0.008) for a non-trivial threshold.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable, Iterable, Sequence
+
+import numpy as np
+import torch
+from scipy.stats import beta as beta_dist
+from scipy.stats import norm
+
+from drake_cert.certification.classifier import ClassCertificate, SmoothedClassifier
+from drake_cert.certification.sampler import make_generator
+from drake_cert.certification.seeds import stream_seed
+from drake_cert.certification.statistics import check_alpha, check_count
+from drake_cert.errors import CertificationError
+
+ALPHA_C = 0.008
+BETA_CAL = 0.001
+BETA_TEST = 0.001
+
+
+def cp_lower(k: np.ndarray | int, n: int, level: float) -> np.ndarray:
+    """One-sided Clopper-Pearson lower bound on p from k successes in n at level ``level``."""
+    k = np.asarray(k, dtype=np.float64)
+    return np.where(k > 0, beta_dist.ppf(level, np.maximum(k, 1), n - k + 1), 0.0)
+
+
+def cp_upper(k: np.ndarray | int, n: int, level: float) -> np.ndarray:
+    """One-sided Clopper-Pearson upper bound on p from k successes in n at level ``level``."""
+    k = np.asarray(k, dtype=np.float64)
+    return np.where(k < n, beta_dist.ppf(1 - level, k + 1, np.maximum(n - k, 1)), 1.0)
+
+
+def lower_conformal_quantile(scores: np.ndarray, alpha_c: float) -> float:
+    """``r_(j)``, the j-th smallest score with ``j = floor(alpha_c (m + 1))``; 0.0 when j = 0.
+
+    For a new score exchangeable with the m given ones, ``P(new >= r_(j)) >= 1 - alpha_c``.
+    (Scores are probabilities in [0, 1]; 0 is the trivial threshold.)
+    """
+    check_alpha(alpha_c, "alpha_c")
+    s = np.sort(np.asarray(scores, dtype=np.float64))
+    j = math.floor(alpha_c * (len(s) + 1))
+    return float(s[j - 1]) if j >= 1 else 0.0
+
+
+@dataclasses.dataclass(frozen=True)
+class RobustConformalCalibration:
+    """Per-label thresholds ``q_l`` of the robust conformal label set (see module doc)."""
+
+    thresholds: dict[int, float]  # true label -> q_l (a lower bound on p_l, in [0, 1])
+    frames_per_label: dict[int, int]
+    num_classes: int
+    sigma: float
+    n: int  # samples per calibration frame
+    alpha_c: float = ALPHA_C
+    beta_cal: float = BETA_CAL
+    beta_test: float = BETA_TEST
+
+    @property
+    def alpha_total(self) -> float:
+        """Miscoverage guaranteed by the construction: ``alpha_c + beta_cal + beta_test``."""
+        return self.alpha_c + self.beta_cal + self.beta_test
+
+    def threshold(self, label: int, eps: float) -> float:
+        """``t_l(eps) = Phi(Phi^-1(q_l) - eps / sigma)``; labels never calibrated: 0 (always in)."""
+        if not (math.isfinite(eps) and eps >= 0):
+            raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
+        q = self.thresholds.get(int(label), 0.0)
+        if q <= 0.0:
+            return 0.0
+        return float(norm.cdf(norm.ppf(q) - eps / self.sigma))
+
+    def label_set(self, counts: Sequence[int] | np.ndarray, eps: float) -> tuple[int, ...]:
+        """``C(x') = {l : CPup(k'_l; n', beta_test) >= t_l(eps)}`` from the run-time vote counts."""
+        counts = np.asarray(counts)
+        if counts.ndim != 1 or counts.size != self.num_classes or (counts < 0).any() \
+                or counts.sum() <= 0:
+            raise CertificationError(f"counts {counts!r} must be {self.num_classes} non-negative "
+                                     "integers with a positive sum")
+        upper = cp_upper(counts, int(counts.sum()), self.beta_test)
+        return tuple(int(lab) for lab in range(self.num_classes)
+                     if upper[lab] >= self.threshold(lab, eps))
+
+
+def calibration_scores(true_counts: np.ndarray, n: int, beta_cal: float = BETA_CAL) -> np.ndarray:
+    """``r_i = CPlow(k_i; n, beta_cal)``: lower bounds on ``p_{y_i}(x_i)`` from k_i votes."""
+    check_alpha(beta_cal, "beta_cal")
+    check_count(n, "n")
+    return cp_lower(np.asarray(true_counts), n, beta_cal)
+
+
+def thresholds_from_scores(scores: np.ndarray, labels: np.ndarray, num_classes: int,
+                           alpha_c: float = ALPHA_C) -> tuple[dict[int, float], dict[int, int]]:
+    """Mondrian lower conformal quantiles ``q_l`` of the scores per true label (0.0: no frames)."""
+    scores, labels = np.asarray(scores, dtype=np.float64), np.asarray(labels)
+    if scores.shape != labels.shape or scores.ndim != 1:
+        raise CertificationError(f"scores {scores.shape} and labels {labels.shape} must be 1-D "
+                                 "arrays of the same length")
+    thresholds, sizes = {}, {}
+    for lab in range(num_classes):
+        s = scores[labels == lab]
+        sizes[lab] = int(len(s))
+        thresholds[lab] = lower_conformal_quantile(s, alpha_c) if len(s) else 0.0
+    return thresholds, sizes
+
+
+def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Tensor,
+                               labels: Sequence[int], *, n: int, batch_size: int,
+                               alpha_c: float = ALPHA_C, beta_cal: float = BETA_CAL,
+                               beta_test: float = BETA_TEST, root_seed: int | None = 0,
+                               progress: Callable[[Iterable], Iterable] | None = None
+                               ) -> RobustConformalCalibration:
+    """Calibrate the robust conformal label set on held-out frames (see module doc).
+
+    Each calibration frame i draws n noisy samples from its own stream
+    (``seeds.stream_seed(root_seed, i, "calibration", split="calibration")``; ``root_seed``
+    None: fresh global noise) and scores ``CPlow`` of its true label's votes.
+    """
+    for name, a in (("alpha_c", alpha_c), ("beta_cal", beta_cal), ("beta_test", beta_test)):
+        check_alpha(a, name)
+    check_count(n, "n")
+    labels = np.asarray([int(v) for v in labels])
+    if len(frames) != len(labels):
+        raise CertificationError(f"{len(frames)} frames but {len(labels)} labels")
+    if len(labels) and (labels.min() < 0 or labels.max() >= classifier.num_classes):
+        raise CertificationError(f"calibration labels must lie in 0..{classifier.num_classes - 1}")
+    iterator: Iterable = range(len(frames))
+    if progress is not None:
+        iterator = progress(iterator)
+    true_counts = np.empty(len(frames), dtype=np.int64)
+    for i in iterator:
+        seed = None if root_seed is None else stream_seed(root_seed, i, "calibration",
+                                                          split="calibration")
+        counts = classifier.sample_counts(frames[i], n, batch_size,
+                                          make_generator(seed, classifier.device))
+        true_counts[i] = counts[labels[i]]
+    scores = calibration_scores(true_counts, n, beta_cal)
+    thresholds, sizes = thresholds_from_scores(scores, labels, classifier.num_classes, alpha_c)
+    return RobustConformalCalibration(thresholds, sizes, classifier.num_classes,
+                                      classifier.sigma, int(n), alpha_c, beta_cal, beta_test)
+
+
+@dataclasses.dataclass(frozen=True)
+class ConformalInterval:
+    """Robust conformal stiffness interval at an observed frame (N/rad).
+
+    ``label_set`` is C(x') (label names), ``labels`` the contiguous friction range whose hull
+    is the interval (the whole family when C(x') is empty), ``alpha_total`` the guaranteed
+    miscoverage.
+    """
+
+    label_set: tuple[str, ...]
+    labels: tuple[str, ...]
+    stiffness_lo_n_per_rad: float
+    stiffness_hi_n_per_rad: float
+    alpha_total: float
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return (self.stiffness_lo_n_per_rad, self.stiffness_hi_n_per_rad)
+
+    @property
+    def width_n_per_rad(self) -> float:
+        return self.stiffness_hi_n_per_rad - self.stiffness_lo_n_per_rad
+
+
+def conformal_interval(counts: Sequence[int] | np.ndarray | ClassCertificate,
+                       calibration: RobustConformalCalibration, table, preset: str, eps: float,
+                       label_names: Sequence[str] | None = None) -> ConformalInterval:
+    """The robust conformal stiffness interval at an observed frame (see module doc).
+
+    ``counts`` are the n estimation votes at the observed frame (or a
+    :class:`ClassCertificate`, whose counts are used: the same samples serve both intervals).
+    The label set is widened to the contiguous friction range from its first to its last
+    label (presets list labels in friction order) and the interval is that range's hull.
+    """
+    if isinstance(counts, ClassCertificate):
+        counts = counts.counts
+    names = list(label_names) if label_names is not None else list(table.preset(preset).labels)
+    family = list(table.preset(preset).labels)
+    if len(names) != calibration.num_classes:
+        raise CertificationError(f"{len(names)} label names for a calibration over "
+                                 f"{calibration.num_classes} labels")
+    chosen = [names[i] for i in calibration.label_set(counts, eps)]
+    missing = [c for c in chosen if c not in family]
+    if missing:
+        raise CertificationError(f"labels {missing} are not in preset {preset!r} ({family})")
+    if chosen:
+        positions = sorted(family.index(c) for c in chosen)
+        span = family[positions[0]:positions[-1] + 1]
+    else:
+        span = family
+    lo, hi = table.hull(span)
+    return ConformalInterval(tuple(chosen), tuple(span), float(lo), float(hi),
+                             calibration.alpha_total)

@@ -1,0 +1,165 @@
+"""``drake-cert drive``: drive a route in the certified closed-loop Diagram (issue 7, DESIGN 6).
+
+Loads a scenario (a shipped name or a YAML file), synthesizes the design table (or reads
+``--designs``), builds the Diagram camera -> attacker -> perception smoothing -> certified
+interval -> longitudinal motion -> switching L1 controller -> Fiala plant, drives the route
+and prints a summary (``--json``: one object). ``--compare`` drives the certified and the base
+pipeline under the same attack and prints both. ``--plot`` writes lateral offset, speed and
+interval against the truth; ``--meshcat`` records the drive to a standalone HTML page;
+``--out`` writes the tape (.csv or .npz). A progress bar on stderr.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+
+PIPELINES = ("certified", "base")
+ATTACKS = ("none", "sa", "ea", "nan", "misshaped")
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--scenario", default="dry_to_snow", metavar="NAME|FILE",
+                        help="shipped scenario name (dry_to_snow, rain_route, road_surface, "
+                             "weather_change_in_curve) or a scenario YAML file")
+    parser.add_argument("--pipeline", choices=PIPELINES, default=None,
+                        help="certified (smoothed g, certificate) or base (raw f); default: "
+                             "the scenario's")
+    parser.add_argument("--compare", action="store_true",
+                        help="drive the certified and the base pipeline and print both")
+    parser.add_argument("--attack", choices=ATTACKS, default=None,
+                        help="attack on each frame (default: the scenario's)")
+    parser.add_argument("--eps", type=float, default=None, metavar="E",
+                        help="L2 budget of the attack, [0, 1] pixel units (default: scenario's)")
+    parser.add_argument("--seed", type=int, default=None,
+                        help="seed of every random stream (default: the scenario's)")
+    parser.add_argument("--n", type=int, default=None,
+                        help="estimation samples per certificate (default: the scenario's)")
+    parser.add_argument("--designs", metavar="FILE", default=None,
+                        help="design table from `synthesize --out` (default: synthesize now)")
+    parser.add_argument("--json", action="store_true", help="print the summary as JSON")
+    parser.add_argument("--plot", metavar="PNG", default=None,
+                        help="write lateral offset, speed and interval vs truth to this PNG")
+    parser.add_argument("--meshcat", metavar="HTML", default=None,
+                        help="record the drive in Meshcat to this standalone HTML page")
+    parser.add_argument("--out", metavar="TAPE", default=None,
+                        help="write the tape(s) to this .csv or .npz file")
+
+
+def _check_outputs(args) -> None:
+    from drake_cert.errors import ConfigError
+    from drake_cert.io import check_writable
+
+    for option, path, suffixes in (("--plot", args.plot, (".png",)),
+                                   ("--meshcat", args.meshcat, (".html", ".htm")),
+                                   ("--out", args.out, (".csv", ".npz"))):
+        if path is None:
+            continue
+        if not path.lower().endswith(suffixes):
+            raise ConfigError(f"{option} {path}: expected a {' or '.join(suffixes)} file")
+        check_writable(path, option)
+    if args.eps is not None and not (args.eps >= 0 and args.eps < float("inf")):
+        raise ConfigError(f"--eps {args.eps!r} must be a finite number >= 0")
+    if args.n is not None and args.n <= 0:
+        raise ConfigError(f"--n {args.n} must be a positive integer")
+    if args.seed is not None and args.seed < 0:
+        raise ConfigError(f"--seed {args.seed} must be >= 0")
+
+
+def _designs(args, vehicle, conditions, settings):
+    if args.designs:
+        from synthesis.design_io import load_design_file
+
+        return list(load_design_file(args.designs).designs)
+    from synthesis.table import synthesize_table
+
+    return synthesize_table(vehicle, conditions, settings)
+
+
+def run(args) -> int:
+    _check_outputs(args)
+    import dataclasses
+
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from systems.driving import with_overrides
+    from systems.scenario import load_scenario
+
+    base_scenario = load_scenario(args.scenario)
+    if args.n is not None:
+        base_scenario = dataclasses.replace(
+            base_scenario, perception=dataclasses.replace(base_scenario.perception, n=args.n))
+    pipelines = PIPELINES if args.compare else (args.pipeline,)
+    scenarios = [with_overrides(base_scenario, pipeline=p, attack=args.attack, eps=args.eps,
+                                seed=args.seed) for p in pipelines]
+    vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
+    designs = _designs(args, vehicle, conditions, settings)
+    common = dict(vehicle=vehicle, settings=settings, conditions=conditions, designs=designs)
+    if len(scenarios) == 1:
+        results = [_drive_with_bar(scenarios[0], common, position=0)]
+    else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(len(scenarios),
+                                 mp_context=multiprocessing.get_context("spawn")) as pool:
+            futures = [pool.submit(_drive_with_bar, sc, common, i)
+                       for i, sc in enumerate(scenarios)]
+            results = [f.result() for f in futures]
+    _write_outputs(args, results)
+    if args.json:
+        out = [r.summary for r in results]
+        print(json.dumps(out[0] if len(out) == 1 else out, indent=None))
+    else:
+        print(format_summaries([r.summary for r in results]))
+    return 0
+
+
+def _drive_with_bar(scenario, common: dict, position: int):
+    """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
+    from tqdm import tqdm
+
+    from systems.driving import drive_scenario
+
+    horizon = scenario.route_length_m / 10.0  # a guess; the bar grows past it if needed
+    with tqdm(total=round(horizon, 1), unit="sim s", file=sys.stderr, disable=None,
+              position=position, desc=f"{scenario.name} {scenario.perception.pipeline}",
+              bar_format="{l_bar}{bar}| {n:.1f} sim s [{elapsed}]") as bar:
+        return drive_scenario(scenario, progress=bar.update, **common)
+
+
+def format_summaries(summaries: list[dict]) -> str:
+    """A small side-by-side table of the drives."""
+    keys = (("pipeline", "{}"), ("attack", "{}"), ("left_lane", "{}"),
+            ("peak_abs_e1_m", "{:.3f}"), ("time_left_lane_s", "{}"),
+            ("mean_speed_mps", "{:.2f}"), ("min_speed_mps", "{:.2f}"),
+            ("distance_m", "{:.1f}"), ("interval_covers_true_fraction", "{:.3f}"),
+            ("envelope_fraction", "{:.3f}"), ("design_switches", "{}"),
+            ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"))
+    lines = [f"scenario {summaries[0]['scenario']} (seed {summaries[0]['seed']})"]
+    for key, fmt in keys:
+        cells = []
+        for s in summaries:
+            v = s.get(key)
+            cells.append("-" if v is None else fmt.format(v))
+        lines.append(f"  {key:<30}" + "".join(f"{c:>14}" for c in cells))
+    return "\n".join(lines)
+
+
+def _write_outputs(args, results) -> None:
+    from drake_cert.io import atomic_write_bytes, atomic_write_text
+
+    if args.plot:
+        from systems.drive_plot import drive_figure_png
+
+        atomic_write_bytes(args.plot, drive_figure_png(results))
+    if args.meshcat:
+        from systems.meshcat_view import record_drives
+
+        meshcat = record_drives({r.summary["pipeline"]: r.tape for r in results},
+                                results[0].route, lane_width_m=results[0].lane_width_m)
+        atomic_write_text(args.meshcat, meshcat.StaticHtml())
+    if args.out:
+        from systems.drive_plot import tape_bytes
+
+        atomic_write_bytes(args.out, tape_bytes(results, args.out))

@@ -1,0 +1,113 @@
+"""Executors for sweeps: in-process by default, Ray for users who outgrow one machine.
+
+An executor maps a worker over tasks and returns the results in task order. The worker is
+built once per process (``make_worker()``; it loads models and designs once) and called as
+``worker(task)``. Results never depend on the executor or the number of workers: every task
+carries its own seeds, and the worker holds no state that changes its answers (caches only).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Callable, Sequence
+from typing import Any, Protocol
+
+from drake_cert.errors import ConfigError
+
+EXECUTORS = ("local", "ray")
+
+
+class Executor(Protocol):
+    def map(self, make_worker: Callable[[], Callable[[Any], Any]], tasks: Sequence[Any],
+            progress: Callable[[int], None] | None = None) -> list[Any]:
+        """Results of ``worker(task)`` for every task, in task order; ``progress(1)`` per task."""
+
+
+class LocalExecutor:
+    """Runs every task in this process, one after another."""
+
+    def map(self, make_worker, tasks, progress=None):
+        worker = make_worker()
+        results = []
+        for task in tasks:
+            results.append(worker(task))
+            if progress is not None:
+                progress(1)
+        return results
+
+
+class RayExecutor:
+    """Runs tasks on ``workers`` Ray actors (each builds its worker once).
+
+    ``address``: an existing cluster ("auto" or "ray://host:port"); None starts a local Ray
+    with ``workers`` CPUs on demand. Results come back in task order.
+    """
+
+    def __init__(self, workers: int = 2, address: str | None = None):
+        if workers < 1:
+            raise ConfigError(f"workers = {workers} must be >= 1")
+        self.workers, self.address = int(workers), address
+
+    def map(self, make_worker, tasks, progress=None):
+        try:
+            import ray
+        except ImportError:
+            raise ConfigError("--executor ray needs Ray: pip install 'drake-cert[ray]'") from None
+        started_here = not ray.is_initialized()
+        if started_here:
+            env = {"env_vars": {"OMP_NUM_THREADS": "1", "TOKENIZERS_PARALLELISM": "false"}}
+            kwargs = dict(address=self.address, runtime_env=env, log_to_driver=False,
+                          include_dashboard=False, configure_logging=False)
+            if self.address is None:
+                kwargs["num_cpus"] = self.workers
+                # The working tree's packages must be importable by the workers.
+                kwargs["runtime_env"]["env_vars"]["PYTHONPATH"] = os.pathsep.join(
+                    p for p in (_project_root(), os.environ.get("PYTHONPATH", "")) if p)
+            ray.init(**kwargs)
+        try:
+            actor_class = ray.remote(num_cpus=1)(_Actor)
+            actors = [actor_class.remote(make_worker) for _ in range(self.workers)]
+            pending = {}
+            results: list[Any] = [None] * len(tasks)
+            next_task = 0
+            for actor in actors:  # one task in flight per actor
+                if next_task < len(tasks):
+                    pending[actor.run.remote(tasks[next_task])] = (next_task, actor)
+                    next_task += 1
+            while pending:
+                done, _ = ray.wait(list(pending), num_returns=1)
+                index, actor = pending.pop(done[0])
+                results[index] = ray.get(done[0])
+                if progress is not None:
+                    progress(1)
+                if next_task < len(tasks):
+                    pending[actor.run.remote(tasks[next_task])] = (next_task, actor)
+                    next_task += 1
+            return results
+        finally:
+            if started_here:
+                ray.shutdown()
+
+
+class _Actor:
+    def __init__(self, make_worker):
+        import torch
+
+        torch.set_num_threads(1)
+        self._worker = make_worker()
+
+    def run(self, task):
+        return self._worker(task)
+
+
+def _project_root() -> str:
+    return os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+
+
+def make_executor(name: str, workers: int = 2, address: str | None = None) -> Executor:
+    """``local`` (default) or ``ray``."""
+    if name == "local":
+        return LocalExecutor()
+    if name == "ray":
+        return RayExecutor(workers, address)
+    raise ConfigError(f"executor {name!r} is not one of {', '.join(EXECUTORS)}")

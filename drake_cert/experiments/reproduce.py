@@ -1,0 +1,317 @@
+"""Reproduce the paper's experiments as per-frame episodes (paper section V, DESIGN 7, issue 8).
+
+For every test frame of a preset (true label, true stiffness, true friction) and every cell
+(pipeline x sigma x attack x budget): the attack on the pipeline under test, its perception
+output, the run-time stiffness interval, the design chosen for that interval, the design's
+safe speed (0 = stop) and one closed-loop episode on the Fiala plant with the frame's true
+stiffness and friction (:mod:`drake_cert.experiments.episodes`).
+
+Pipelines (the same frames, attacks and budgets for each):
+- ``f``: the non-robust classifier (sigma = 0); the predicted label's interval and design;
+  SA/EA are L2 PGD on f.
+- ``g``: the smoothed classifier at sigma; CERTIFY at the observed frame and the run-time
+  interval at budget eps (DESIGN 3), the envelope when nothing is certified; SA/EA are
+  SmoothAdv PGD on g (expectation over the smoothing noise). Its ``certificate`` is the
+  certified radius of the label range the run-time interval came from (0 on the envelope);
+  ``safe_set_radius`` is the paper's R_S(a), infinite when S(a) is the whole family.
+- ``f_reg``: the non-robust regressor; its prediction (clipped to the preset's envelope) gets
+  the narrowest design containing it.
+- ``h``: the median-smoothed regressor; order-statistic bounds at eps widened by the Mondrian
+  conformal beta (DESIGN 3), the narrowest design containing that interval.
+
+Seeds: one root seed; every frame and purpose has its own ``numpy.random.SeedSequence``
+(spawn key ``(preset, frame, purpose, cell)``), so no attack draws the noise of the
+certificate it attacks, and a frame's rows can be recomputed alone
+(:func:`recompute_frame`) with the same numbers, whatever the executor.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Callable
+
+import numpy as np
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
+
+PIPELINES = ("f", "g", "f_reg", "h")
+ATTACK_KINDS = ("none", "sa", "ea")
+
+# Purposes of the seed streams (spawn-key entries; distinct by construction). A cell's
+# blocks draw their attack and certificate noise from SeedSequence([cell seed, purpose, frame])
+# (systems.streams), the cell seed being the root's child (preset, CELL, cell).
+FRAME_CHOICE, CALIBRATION, CELL = 0, 1, 2
+
+
+@dataclasses.dataclass(frozen=True)
+class ReproduceConfig:
+    """What to reproduce; budgets are L2 norms in [0, 1] pixel space."""
+
+    presets: tuple[str, ...] = ("carla-like", "rtk-like", "robotcar-like")
+    sigmas: tuple[float, ...] = (0.25, 0.5, 1.0)
+    eps: float = 0.25  # budget of the main tables (attack and certificate)
+    sweep_eps: tuple[float, ...] = (0.0, 0.25, 0.5, 1.0, 1.5, 2.0)  # classification sweep
+    sweep_sigma: float = 0.5  # the g of the sweep
+    frames: int = 100  # test frames per preset; every cell sees the same frames
+    n0: int = 100
+    n: int = 10_000
+    alpha: float = 0.001
+    batch_size: int = 1000
+    attack_steps: int = 20
+    attack_noise_draws: int = 8
+    regression: bool = True
+    calibration_per_class: int = 100  # conformal calibration frames per label
+    calibration_n: int = 1000  # samples per calibration frame
+    alpha_c: float = 0.01
+    alpha_m: float = 0.001
+    seed: int = 0
+
+    @staticmethod
+    def quick(seed: int = 0) -> ReproduceConfig:
+        """A few frames per cell, small n, one budget: the CI-sized run (< 2 min on 2 cores)."""
+        return ReproduceConfig(sigmas=(0.25, 0.5, 1.0), eps=0.25, sweep_eps=(0.25,),
+                               sweep_sigma=0.25, frames=2, n0=20, n=200, batch_size=200,
+                               attack_steps=4, attack_noise_draws=2, calibration_per_class=6,
+                               calibration_n=100, seed=seed)
+
+    def validate(self) -> None:
+        conditions = load_conditions()
+        known = [p.name for p in conditions.presets]
+        for p in self.presets:
+            if p not in known:
+                raise ConfigError(f"unknown preset {p!r}; expected one of {known}")
+        for name in ("frames", "n0", "n", "batch_size", "calibration_per_class",
+                     "calibration_n"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
+        for s in (*self.sigmas, self.sweep_sigma):
+            if not (math.isfinite(s) and s > 0):
+                raise ConfigError(f"sigma = {s!r} must be positive")
+        for e in (self.eps, *self.sweep_eps):
+            if not (math.isfinite(e) and e >= 0):
+                raise ConfigError(f"eps = {e!r} must be a finite number >= 0")
+        if not 0 < self.alpha < 1:
+            raise ConfigError(f"alpha = {self.alpha!r} must be in (0, 1)")
+        if self.seed < 0:
+            raise ConfigError(f"seed = {self.seed} must be >= 0")
+
+    def cells(self) -> list[tuple[str, float, str, float]]:
+        """Every (pipeline, sigma, attack, eps) evaluated on each frame, in a fixed order.
+
+        Main tables: f, g (each sigma), f_reg and h (each sigma), clean and under SA and EA,
+        at budget ``eps`` (a clean frame's run-time interval is also taken at ``eps``).
+        Sweep: f and g at ``sweep_sigma`` under SA and EA at every other budget (eps = 0:
+        g's clean interval at budget 0).
+        """
+        out: list[tuple[str, float, str, float]] = []
+        for kind in ATTACK_KINDS:
+            out.append(("f", 0.0, kind, self.eps))
+            out.extend(("g", s, kind, self.eps) for s in self.sigmas)
+            if self.regression:
+                out.append(("f_reg", 0.0, kind, self.eps))
+                out.extend(("h", s, kind, self.eps) for s in self.sigmas)
+        for eps in sorted(set(self.sweep_eps) - {self.eps}):
+            if eps == 0:
+                out.append(("g", self.sweep_sigma, "none", 0.0))
+                continue
+            for kind in ("sa", "ea"):
+                out += [("f", 0.0, kind, eps), ("g", self.sweep_sigma, kind, eps)]
+        return out
+
+
+def seed_of(config: ReproduceConfig, *key: int) -> int:
+    """A 63-bit integer seed of the stream with spawn key ``key`` under the root seed."""
+    ss = np.random.SeedSequence(entropy=config.seed, spawn_key=tuple(int(k) for k in key))
+    return int(ss.generate_state(1, dtype=np.uint64)[0] >> 1)
+
+
+def frame_indices(config: ReproduceConfig, preset_index: int, labels) -> np.ndarray:
+    """The test frames of a preset: round-robin over classes from a seeded permutation."""
+    from drake_cert.experiments.perception_eval import select_frames
+
+    return select_frames(labels, config.frames, seed_of(config, preset_index, FRAME_CHOICE))
+
+
+@dataclasses.dataclass(frozen=True)
+class FrameTask:
+    preset: str
+    position: int  # which of the preset's chosen frames (0 .. frames - 1)
+
+
+class FrameWorker:
+    """Evaluates every cell on one frame. Loads designs, models and calibrations once."""
+
+    def __init__(self, config: ReproduceConfig):
+        import torch
+
+        from drake_cert.experiments.episodes import EpisodeRunner
+        from synthesis.table import synthesize_table
+
+        torch.set_num_threads(1)
+        self.config = config
+        self.vehicle, self.settings = load_vehicle(), load_settings()
+        self.conditions = load_conditions()
+        self.designs = synthesize_table(self.vehicle, self.conditions, self.settings)
+        self.episodes = EpisodeRunner(self.vehicle, self.settings)
+        self._models: dict = {}
+        self._betas: dict = {}
+        self._frames: dict = {}
+        self._blocks: dict = {}
+
+    # ------------------------------------------------------------------ loading (cached)
+    def model(self, preset: str, task: str, sigma: float):
+        from drake_cert.perception.models import load_model
+
+        key = (preset, task, sigma)
+        if key not in self._models:
+            self._models[key] = load_model(preset, task, sigma)
+        return self._models[key]
+
+    def frames(self, preset: str):
+        from drake_cert.perception.datasets import load_split
+
+        if preset not in self._frames:
+            test = load_split(preset, "test", conditions=self.conditions)
+            idx = frame_indices(self.config, self.config.presets.index(preset), test.labels)
+            self._frames[preset] = (test, idx)
+        return self._frames[preset]
+
+    def beta(self, preset: str, sigma: float) -> float:
+        """Run-time conformal beta of the median-smoothed regressor (largest over labels)."""
+        from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+        from drake_cert.perception.datasets import load_split
+
+        key = (preset, sigma)
+        if key not in self._betas:
+            c = self.config
+            cal = load_split(preset, "calibration", conditions=self.conditions).per_class(
+                c.calibration_per_class)
+            reg = MedianSmoothedRegressor(self.model(preset, "regress", sigma), sigma)
+            calib = calibrate_conformal(
+                reg, cal.images, cal.stiffness_n_per_rad.tolist(), cal.labels.tolist(),
+                n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
+                alpha_m=c.alpha_m, alpha_c=c.alpha_c,
+                seed=seed_of(c, c.presets.index(preset), CALIBRATION,
+                             c.sigmas.index(sigma) if sigma in c.sigmas else 99))
+            self._betas[key] = calib.beta
+        return self._betas[key]
+
+    # ------------------------------------------------------------------ one frame
+    def __call__(self, task: FrameTask) -> list[dict]:
+        from systems.camera import CameraFrame
+
+        c = self.config
+        p_idx = c.presets.index(task.preset)
+        test, idx = self.frames(task.preset)
+        i = int(idx[task.position])
+        label = int(test.labels[i])
+        names = list(test.label_names)
+        friction = self.conditions.condition(names[label]).friction_mu
+        frame = CameraFrame(image=test.images[i], time_s=0.0, tick=task.position,
+                            position_m=0.0, label_index=label,
+                            stiffness_n_per_rad=float(test.stiffness_n_per_rad[i]),
+                            friction_mu=friction)
+        truth = dict(preset=task.preset, frame=i, position=task.position,
+                     true_label=names[label], stiffness_n_per_rad=frame.stiffness_n_per_rad,
+                     friction_mu=friction, seed=f"{c.seed}/{p_idx}/{task.position}")
+        rows = []
+        for cell_index, cell in enumerate(c.cells()):
+            pipeline, sigma, kind, eps = cell
+            attacker, perception, interval = self.blocks(task.preset, cell_index, cell)
+            seen = attacker.perturb(frame)
+            result = perception.perceive(seen, 0.0)
+            decision = interval.request(result)
+            design = interval.designs[decision.design_index]
+            outcome = self.episodes.outcome(design, frame.stiffness_n_per_rad, friction)
+            lo, hi = decision.interval
+            row = dict(truth, pipeline=pipeline, sigma=sigma, attack=kind, eps=eps,
+                       task="regress" if pipeline in ("f_reg", "h") else "classify",
+                       predicted=self.prediction(result, names),
+                       interval_lo=lo, interval_hi=hi, certificate=float(decision.radius),
+                       safe_set_radius=self.safe_set_radius(result, task.preset, names),
+                       certified=decision.status == "certified",
+                       design_labels="+".join(design.labels), velocity_mps=outcome.speed_mps,
+                       left_lane=outcome.left_lane, peak_abs_e1_m=outcome.peak_abs_e1_m,
+                       interval_covers=bool(lo <= frame.stiffness_n_per_rad <= hi))
+            rows.append(row)
+        return rows
+
+    def blocks(self, preset: str, cell_index: int, cell: tuple):
+        """The Diagram's own attacker, perception and interval blocks for one cell (cached).
+
+        Their random streams are ``SeedSequence([cell seed, purpose, frame position])`` with
+        the cell seed spawned from the root seed: distinct for every (preset, cell, frame).
+        """
+        from synthesis.selection import preset_designs
+        from systems.attacker import Attacker
+        from systems.certified_interval import CertifiedInterval
+        from systems.perception_smoothing import PerceptionSmoothing
+
+        key = (preset, cell_index)
+        if key in self._blocks:
+            return self._blocks[key]
+        c = self.config
+        pipeline, sigma, kind, eps = cell
+        task = "regress" if pipeline in ("f_reg", "h") else "classify"
+        mode = "certified" if pipeline in ("g", "h") else "base"
+        model = self.model(preset, task, sigma)
+        seed = seed_of(c, c.presets.index(preset), CELL, cell_index)
+        labels = list(self.conditions.preset(preset).labels)
+        attacker = Attacker(kind, eps=eps, target="smoothed" if mode == "certified" else "base",
+                            model=model, sigma=sigma, task=task, seed=seed,
+                            steps=c.attack_steps, noise_draws=c.attack_noise_draws)
+        perception = PerceptionSmoothing(
+            model, mode=mode, task=task, sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n,
+            alpha=c.alpha, batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels,
+            eps=eps)
+        beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
+        interval = CertifiedInterval(preset_designs(self.designs, self.conditions, preset),
+                                     self.conditions, preset, eps=eps, mode=mode, task=task,
+                                     regression_beta=beta, label_names=labels)
+        self._blocks[key] = (attacker, perception, interval)
+        return self._blocks[key]
+
+    @staticmethod
+    def prediction(result, names):
+        if result.certificate is not None:
+            return names[result.certificate.top_label]
+        if result.base_label is not None and result.task == "classify":
+            return names[result.base_label]
+        if result.regression is not None:
+            return float(result.regression[0])
+        if result.base_value_n_per_rad is not None:
+            return float(result.base_value_n_per_rad)
+        return None
+
+    def safe_set_radius(self, result, preset, names) -> float:
+        """The paper's R_S(a) of the certificate's top label a (inf when S(a) is every label)."""
+        cert = result.certificate
+        if cert is None:
+            return 0.0
+        if cert.abstained:
+            return 0.0
+        safe = self.conditions.safe_set(preset, names[cert.top_label])
+        return float(cert.radius_for([names.index(m) for m in safe]))
+
+
+def tasks_for(config: ReproduceConfig) -> list[FrameTask]:
+    return [FrameTask(p, k) for p in config.presets for k in range(config.frames)]
+
+
+def run_reproduction(config: ReproduceConfig, executor=None,
+                     progress: Callable[[int], None] | None = None) -> list[dict]:
+    """Every per-frame row of the reproduction, in (preset, frame, cell) order."""
+    from drake_cert.experiments.executors import LocalExecutor
+
+    config.validate()
+    executor = executor or LocalExecutor()
+    results = executor.map(lambda: FrameWorker(config), tasks_for(config), progress)
+    return [row for rows in results for row in rows]
+
+
+def recompute_frame(config: ReproduceConfig, preset: str, position: int) -> list[dict]:
+    """The rows of one frame, computed alone (same numbers as in the full run)."""
+    config.validate()
+    return FrameWorker(config)(FrameTask(preset, position))

@@ -1,0 +1,59 @@
+"""Which synthesized design a run-time stiffness interval gets (DESIGN 5.4 and 6).
+
+One code path for the Drake diagram's certified-interval block and for the experiments:
+a classification interval is a contiguous label range and gets that range's design; a
+regression interval gets the narrowest design of the preset whose stiffness interval contains
+it; the family envelope's design is the fallback, never a nominal one.
+"""
+
+from collections.abc import Sequence
+
+from drake_cert.config import ConditionsTable
+from drake_cert.errors import ConfigError
+from synthesis.design import ControllerDesign
+
+
+def preset_designs(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                   preset: str) -> list[ControllerDesign]:
+    """The designs of every contiguous label range of ``preset`` (envelope included), in the
+    order of :meth:`ConditionsTable.contiguous_ranges`. Raises ConfigError when the table lacks
+    one (it was synthesized for other conditions)."""
+    by_labels = {tuple(d.labels): d for d in designs if d.labels}
+    chosen = []
+    for labels in conditions.contiguous_ranges(preset):
+        design = by_labels.get(tuple(labels))
+        if design is None:
+            raise ConfigError(f"the design table has no design for labels {list(labels)} of "
+                              f"preset {preset!r}; synthesize it with these conditions")
+        chosen.append(design)
+    return chosen
+
+
+def design_index_for_labels(designs: Sequence[ControllerDesign], labels: Sequence[str]) -> int:
+    """Index of the design of exactly this label range."""
+    wanted = tuple(labels)
+    for i, d in enumerate(designs):
+        if tuple(d.labels) == wanted:
+            return i
+    raise ConfigError(f"no design for labels {list(wanted)}")
+
+
+def envelope_design_index(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                          preset: str) -> int:
+    """Index of the design for the preset's whole family (its stiffness envelope)."""
+    return design_index_for_labels(designs, conditions.preset(preset).labels)
+
+
+def narrowest_containing_design_index(designs: Sequence[ControllerDesign],
+                                      interval: tuple[float, float]) -> int | None:
+    """Index of the narrowest design whose stiffness interval contains ``interval`` (N/rad);
+    ties go to the slower design (the conservative side). None when no design contains it."""
+    lo, hi = interval
+    best, best_key = None, None
+    for i, d in enumerate(designs):
+        d_lo, d_hi = d.interval
+        if d_lo <= lo and hi <= d_hi:
+            key = (d_hi - d_lo, d.speed_mps)
+            if best_key is None or key < best_key:
+                best, best_key = i, key
+    return best

@@ -1,0 +1,100 @@
+"""The attacker between the camera and perception (DESIGN 3 attacks, DESIGN 6).
+
+Kinds: ``none`` (frames pass unchanged); ``sa`` (stability attack: push the predicted stiffness
+up, towards the grippiest label) and ``ea`` (efficiency attack: push it down), L2 PGD at
+budget ``eps`` in [0, 1] pixel space with :func:`drake_cert.certification.attacks.attack`,
+against the base model f (``target="base"``: f's own gradient, no noise) or the smoothed
+model (``target="smoothed"``: SmoothAdv, the expectation over ``noise_draws`` draws at
+``sigma``); and two faults for testing the pipeline's handling of bad frames: ``nan`` (every
+pixel NaN) and ``misshaped`` (the top half of the image only, [3, H/2, W]).
+
+Stateless: the output is cached on the input, so each attack runs once per new frame. The
+attack of tick k draws its random start and noise from the stream ``(seed, ATTACK, k)``.
+A frame that is already bad (NaN, wrong rank) is passed through unchanged by sa/ea.
+"""
+
+import dataclasses
+import math
+
+import torch
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import LeafSystem
+
+from drake_cert.certification.attacks import AttackSettings, attack
+from drake_cert.errors import ConfigError
+from systems import streams
+from systems.camera import CameraFrame
+
+KINDS = ("none", "sa", "ea", "nan", "misshaped")
+TARGETS = ("base", "smoothed")
+
+
+class Attacker(LeafSystem):
+    """Input ``frame`` (abstract :class:`CameraFrame`), output ``frame`` (perturbed copy).
+
+    Args:
+        kind: one of :data:`KINDS`.
+        eps: L2 budget of sa/ea (pixel units).
+        target: "base" (PGD on ``model``) or "smoothed" (SmoothAdv on ``model`` at ``sigma``).
+        model: the perception model attacked (classifier logits or stiffness regressor);
+            needed for sa/ea.
+        sigma: noise level of the smoothed model (used when ``target="smoothed"``).
+        task: "classify" or "regress" (what ``model`` outputs).
+        seed: scenario seed; tick k uses the stream (seed, ATTACK, k).
+        steps, noise_draws, step_size: PGD settings (:class:`AttackSettings`).
+        frame_size: side of the camera's frames (model value of the ports).
+    """
+
+    def __init__(self, kind: str = "none", *, eps: float = 0.0, target: str = "smoothed",
+                 model: torch.nn.Module | None = None, sigma: float = 0.0,
+                 task: str = "classify", seed: int = 0, steps: int = 20, noise_draws: int = 8,
+                 step_size: float | None = None, frame_size: int = 64):
+        super().__init__()
+        if kind not in KINDS:
+            raise ConfigError(f"attack kind {kind!r}; expected one of {', '.join(KINDS)}")
+        if target not in TARGETS:
+            raise ConfigError(f"attack target {target!r}; expected one of {', '.join(TARGETS)}")
+        if not (math.isfinite(eps) and eps >= 0):
+            raise ConfigError(f"attack eps = {eps!r} must be a finite number >= 0")
+        if kind in ("sa", "ea") and model is None:
+            raise ConfigError(f"attack {kind!r} needs the perception model it attacks")
+        if target == "smoothed" and kind in ("sa", "ea") and not sigma > 0:
+            raise ConfigError(f"attack target 'smoothed' needs sigma > 0, got {sigma!r}")
+        self.kind = kind
+        self.eps = float(eps)
+        self.target = target
+        self.model = model
+        self.sigma = float(sigma) if target == "smoothed" else 0.0
+        self.task = task
+        self.seed = int(seed)
+        self._settings = AttackSettings(eps=self.eps, steps=int(steps), step_size=step_size,
+                                        noise_draws=int(noise_draws))
+        self._settings.validate()
+        placeholder = CameraFrame.placeholder(frame_size)
+        self._in = self.DeclareAbstractInputPort("frame", AbstractValue.Make(placeholder))
+        self.DeclareAbstractOutputPort("frame", lambda: AbstractValue.Make(placeholder),
+                                       self._calc_frame,
+                                       prerequisites_of_calc={self._in.ticket()})
+
+    def perturb(self, frame: CameraFrame) -> CameraFrame:
+        """The attacked frame (pure: same frame, same tick, same result)."""
+        x = frame.image
+        if self.kind == "none":
+            return frame
+        if self.kind == "nan":
+            return dataclasses.replace(frame, image=torch.full_like(x, math.nan),
+                                       attack="nan", perturbation_l2=math.nan)
+        if self.kind == "misshaped":
+            return dataclasses.replace(frame, image=x[..., : max(1, x.shape[-2] // 2), :].clone(),
+                                       attack="misshaped", perturbation_l2=math.nan)
+        if not (x.dim() == 3 and bool(torch.isfinite(x).all())) or self.eps == 0:
+            return frame
+        settings = dataclasses.replace(
+            self._settings, seed=streams.stream_seed(self.seed, streams.ATTACK, frame.tick))
+        adv = attack(self.model, x[None].float(), self.kind, settings, task=self.task,
+                     sigma=self.sigma)[0]
+        return dataclasses.replace(frame, image=adv, attack=self.kind,
+                                   perturbation_l2=float((adv - x).norm()))
+
+    def _calc_frame(self, context, output: AbstractValue) -> None:
+        output.set_value(self.perturb(self._in.Eval(context)))

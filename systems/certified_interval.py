@@ -1,0 +1,300 @@
+"""From perception to a stiffness interval, a controller design and a speed command (DESIGN 3, 6).
+
+Once per camera tick (default offset T/2, after perception at T/4) the block turns the
+latest :class:`PerceptionResult` into a :class:`Decision`:
+
+- certified classification: the run-time interval at budget eps at the observed frame
+  (:func:`runtime_classification_interval`: the narrowest contiguous label range T holding
+  the top label with ``R_T > eps``); its design is the table's design for T.
+- certified regression: ``[lower - beta, upper + beta]`` clipped to the envelope
+  (:func:`runtime_interval`); its design is the narrowest design whose interval contains it
+  and whose friction bound is at most the least friction a stiffness in it can mean
+  (:func:`synthesis.table.friction_lower_bound`); ties: the slower design.
+- base mode (non-robust baseline): the raw label's own interval and design (regression: the
+  narrowest design holding the raw point prediction, under the same friction rule).
+- Abstain, a bad frame, a failed certificate or nothing certified: the family envelope and its
+  design, never a nominal value. The state before the first tick is the envelope too.
+
+The speed command is the design's safe speed, or 0 (stop) when the design has none.
+Dwell time: the design changes at most once per ``dwell_time_s``; a request for another
+design inside the dwell is held back (the design in force stays, its speed command is
+``min(held design speed, requested design speed)``) and applies at the first tick after the
+dwell has elapsed if still requested; the applied decision keeps the look point of the tick
+that first requested it. A request that changes while held back restarts the hold's look
+point; one that is no longer requested is dropped.
+"""
+
+import dataclasses
+import math
+from collections.abc import Sequence
+
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
+
+from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
+from drake_cert.config import ConditionsTable
+from drake_cert.errors import ConfigError
+from synthesis.design import ControllerDesign
+from synthesis.design_io import DesignTable
+from synthesis.table import friction_lower_bound
+from systems.perception_smoothing import PerceptionResult
+
+STATUS_CODES = {"certified": 0, "envelope": 1, "stop": 2, "base": 3}
+
+
+@dataclasses.dataclass(frozen=True)
+class Decision:
+    """The interval, design and speed command in force from the look point ``position_m``."""
+
+    time_s: float  # time of the decision (s)
+    position_m: float  # look point from which it applies (m); held requests: first request's
+    interval: tuple[float, float]  # stiffness interval (N/rad) of the design in force
+    c_hat: float  # the design's nominal stiffness (interval midpoint, N/rad)
+    design_index: int  # index into the block's designs list
+    speed_command_mps: float  # speed for the look point on (m/s); 0 = stop
+    status: str  # "certified", "envelope" or "base"
+    radius: float  # certified L2 radius of the interval (0 if none; regression: eps)
+    labels: tuple[str, ...]  # label names of the design in force
+    true_stiffness_n_per_rad: float  # truth of the seen segment (N/rad), for logs
+    true_label_index: int = -1  # truth: condition of the seen segment
+    tick: int = -1  # camera tick of the frame behind it
+    requested_design_index: int = -1  # what this tick asked for (differs when held back)
+    held: bool = False  # a request for another design is held back by the dwell time
+    frame_ok: bool = False  # perception had a good frame
+    error: str = ""  # perception's reason for a bad frame
+
+    @property
+    def status_code(self) -> int:
+        """0 certified, 1 envelope, 2 stop (speed command 0), 3 base."""
+        if self.speed_command_mps <= 0.0:
+            return STATUS_CODES["stop"]
+        return STATUS_CODES[self.status]
+
+    @property
+    def covers_truth(self) -> bool:
+        """The interval holds the true stiffness of the seen segment."""
+        lo, hi = self.interval
+        return lo <= self.true_stiffness_n_per_rad <= hi
+
+
+@dataclasses.dataclass(frozen=True)
+class _DwellState:
+    decision: Decision
+    switched_at_s: float  # time of the last design switch (s)
+    pending: tuple[int, float] | None  # held request: (design index, first look point)
+
+
+def designs_for_preset(table: DesignTable, conditions: ConditionsTable,
+                       preset: str) -> list[ControllerDesign]:
+    """The table's designs of the preset's contiguous label ranges (envelope included), in
+    :meth:`ConditionsTable.contiguous_ranges` order; :class:`ConfigError` if one is missing."""
+    by_labels = {tuple(d.labels): d for d in table.designs}
+    out = []
+    for rng in conditions.contiguous_ranges(preset):
+        if tuple(rng) not in by_labels:
+            raise ConfigError(f"design table has no design for the label range {rng} of preset "
+                              f"{preset!r}; synthesize it (drake-cert synthesize)")
+        out.append(by_labels[tuple(rng)])
+    return out
+
+
+def _speed(design: ControllerDesign) -> float:
+    return float(design.speed_mps) if design.has_safe_speed else 0.0
+
+
+class CertifiedInterval(LeafSystem):
+    """Input ``perception`` (abstract :class:`PerceptionResult`); abstract state and output
+    ``decision`` (:class:`Decision`); vector outputs ``interval_n_per_rad`` (2, N/rad),
+    ``design_index`` (1), ``speed_command_mps`` (1, m/s), ``certified_radius`` (1, L2 pixel
+    units) and ``status`` (1: 0 certified, 1 envelope, 2 stop / no safe speed, 3 base).
+
+    Args:
+        designs: the designs to choose from (e.g. :func:`designs_for_preset`); must hold the
+            envelope design (labels = the preset's whole family) and, for classification,
+            one design per contiguous label range.
+        conditions, preset: the conditions table and the perception preset.
+        eps: L2 budget the run-time interval is certified against.
+        mode: "certified" or "base"; task: "classify" or "regress".
+        regression_beta: conformal beta (N/rad) of the regression interval.
+        dwell_time_s: least time between design switches (s).
+        rate_hz, offset_s: the update's rate and offset (default half a period).
+        label_names: the classifier's label names (default: the preset's).
+    """
+
+    def __init__(self, designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                 preset: str, *, eps: float, mode: str = "certified", task: str = "classify",
+                 regression_beta: float = 0.0, dwell_time_s: float = 0.3, rate_hz: float = 10.0,
+                 offset_s: float | None = None, label_names: Sequence[str] | None = None):
+        super().__init__()
+        if mode not in ("certified", "base") or task not in ("classify", "regress"):
+            raise ConfigError(f"mode {mode!r} / task {task!r}: expected certified|base and "
+                              "classify|regress")
+        if not (math.isfinite(eps) and eps >= 0):
+            raise ConfigError(f"eps = {eps!r} must be a finite number >= 0")
+        if not (math.isfinite(dwell_time_s) and dwell_time_s >= 0):
+            raise ConfigError(f"dwell_time_s = {dwell_time_s!r} must be a finite number >= 0")
+        if not regression_beta >= 0:
+            raise ConfigError(f"regression_beta = {regression_beta!r} must be >= 0")
+        self.designs = list(designs)
+        self.conditions, self.preset = conditions, preset
+        self.eps, self.mode, self.task = float(eps), mode, task
+        self.beta = float(regression_beta)
+        self.dwell_time_s = float(dwell_time_s)
+        self.family = tuple(conditions.preset(preset).labels)
+        self.label_names = tuple(label_names) if label_names is not None else self.family
+        self.envelope = conditions.envelope(preset)
+        self._by_labels = {}
+        for i, d in enumerate(self.designs):
+            self._by_labels.setdefault(tuple(d.labels), i)
+        if self.family not in self._by_labels:
+            raise ConfigError(f"designs hold no envelope design (labels {list(self.family)})")
+        self.envelope_index = self._by_labels[self.family]
+        if task == "classify":
+            for rng in conditions.contiguous_ranges(preset):
+                if tuple(rng) not in self._by_labels:
+                    raise ConfigError(f"designs hold no design for the label range {rng}")
+
+        period = 1.0 / float(rate_hz)
+        self.offset_s = 0.5 * period if offset_s is None else float(offset_s)
+        initial = self.initial_state()
+        self.DeclareAbstractInputPort("perception", AbstractValue.Make(
+            PerceptionResult.no_frame(mode, task)))
+        state_index = self.DeclareAbstractState(AbstractValue.Make(initial))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period, self.offset_s, self._update)
+        state = {self.abstract_state_ticket(state_index)}
+        self.DeclareAbstractOutputPort("decision", lambda: AbstractValue.Make(initial.decision),
+                                       self._calc_decision, prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("interval_n_per_rad", 2, self._calc_interval,
+                                     prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("design_index", 1, self._calc_index,
+                                     prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("speed_command_mps", 1, self._calc_speed,
+                                     prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("certified_radius", 1, self._calc_radius,
+                                     prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("status", 1, self._calc_status, prerequisites_of_calc=state)
+
+    # ------------------------------------------------------------------ the decision
+    def _decision(self, p: PerceptionResult, index: int, status: str, radius: float,
+                  interval: tuple[float, float] | None = None) -> Decision:
+        d = self.designs[index]
+        return Decision(time_s=float(p.time_s), position_m=float(p.position_m),
+                        interval=tuple(interval) if interval is not None else tuple(d.interval),
+                        c_hat=float(d.nominal_stiffness_n_per_rad), design_index=index,
+                        speed_command_mps=_speed(d), status=status, radius=float(radius),
+                        labels=tuple(d.labels), true_stiffness_n_per_rad=p.stiffness_n_per_rad,
+                        true_label_index=p.label_index, tick=p.tick,
+                        requested_design_index=index, frame_ok=p.frame_ok, error=p.error)
+
+    def envelope_decision(self, p: PerceptionResult) -> Decision:
+        """The family envelope and its design (abstain, bad frame, nothing certified)."""
+        return self._decision(p, self.envelope_index, "envelope", 0.0, self.envelope)
+
+    def request(self, p: PerceptionResult) -> Decision:
+        """What this perception result asks for, before the dwell time (pure)."""
+        if not p.frame_ok:
+            return self.envelope_decision(p)
+        if self.task == "classify":
+            if self.mode == "base":
+                if p.base_label is None or not 0 <= p.base_label < len(self.label_names):
+                    return self.envelope_decision(p)
+                index = self._by_labels.get((self.label_names[p.base_label],))
+                return (self.envelope_decision(p) if index is None
+                        else self._decision(p, index, "base", 0.0))
+            if p.certificate is None or p.certificate.abstained:
+                return self.envelope_decision(p)
+            rt = runtime_classification_interval(p.certificate, self.conditions, self.preset,
+                                                 self.eps, self.label_names)
+            if not rt.certified:
+                return self.envelope_decision(p)
+            return self._decision(p, self._by_labels[tuple(rt.labels)], "certified", rt.radius,
+                                  rt.interval)
+        if self.mode == "base":
+            v = p.base_value_n_per_rad
+            if v is None or not math.isfinite(v):
+                return self.envelope_decision(p)
+            index = self._narrowest_holding((v, v))
+            return (self.envelope_decision(p) if index is None
+                    else self._decision(p, index, "base", 0.0))
+        if p.regression is None:
+            return self.envelope_decision(p)
+        _, lower, upper = p.regression
+        interval = runtime_interval(lower, upper, self.beta, self.envelope)
+        if interval == tuple(float(x) for x in self.envelope):
+            return self.envelope_decision(p)
+        index = self._narrowest_holding(interval)
+        if index is None or index == self.envelope_index:
+            return self.envelope_decision(p)
+        return self._decision(p, index, "certified", self.eps, interval)
+
+    def _narrowest_holding(self, interval: tuple[float, float]) -> int | None:
+        """Narrowest design holding ``interval`` whose friction bound is sound for it."""
+        lo, hi = interval
+        mu = friction_lower_bound(self.conditions, self.preset, (lo, hi))
+        best, key = None, None
+        for i, d in enumerate(self.designs):
+            if not (d.stiffness_lo_n_per_rad <= lo and hi <= d.stiffness_hi_n_per_rad):
+                continue
+            if d.friction_mu_lo > mu + 1e-12:
+                continue
+            k = (d.stiffness_hi_n_per_rad - d.stiffness_lo_n_per_rad, _speed(d), i)
+            if key is None or k < key:
+                best, key = i, k
+        return best
+
+    # ------------------------------------------------------------------ the dwell time
+    def initial_state(self) -> _DwellState:
+        """The envelope decision, no switch yet (the first switch is free)."""
+        p = PerceptionResult.no_frame(self.mode, self.task)
+        return _DwellState(self.envelope_decision(p), -math.inf, None)
+
+    def step(self, state: _DwellState, p: PerceptionResult, time_s: float) -> _DwellState:
+        """Apply the request of ``p`` at time ``time_s`` (s) under the dwell time (pure)."""
+        t = float(time_s)
+        req = dataclasses.replace(self.request(p), time_s=t)
+        cur = state.decision
+        if req.design_index == cur.design_index:
+            return _DwellState(req, state.switched_at_s, None)
+        if t - state.switched_at_s >= self.dwell_time_s - 1e-9:
+            position = (state.pending[1] if state.pending is not None
+                        and state.pending[0] == req.design_index else req.position_m)
+            return _DwellState(dataclasses.replace(req, position_m=position), t, None)
+        pending = (state.pending if state.pending is not None
+                   and state.pending[0] == req.design_index
+                   else (req.design_index, req.position_m))
+        held = dataclasses.replace(
+            cur, time_s=t, position_m=pending[1],
+            speed_command_mps=min(_speed(self.designs[cur.design_index]), req.speed_command_mps),
+            true_stiffness_n_per_rad=req.true_stiffness_n_per_rad,
+            true_label_index=req.true_label_index, tick=req.tick,
+            requested_design_index=req.design_index, held=True, frame_ok=req.frame_ok,
+            error=req.error)
+        return _DwellState(held, state.switched_at_s, pending)
+
+    # ------------------------------------------------------------------ Drake plumbing
+    def _update(self, context, state) -> EventStatus:
+        p = self.get_input_port(0).Eval(context)
+        new = self.step(context.get_abstract_state(0).get_value(), p, context.get_time())
+        state.get_mutable_abstract_state(0).set_value(new)
+        return EventStatus.Succeeded()
+
+    def _now(self, context) -> Decision:
+        return context.get_abstract_state(0).get_value().decision
+
+    def _calc_decision(self, context, output: AbstractValue) -> None:
+        output.set_value(self._now(context))
+
+    def _calc_interval(self, context, output: BasicVector) -> None:
+        output.SetFromVector(list(self._now(context).interval))
+
+    def _calc_index(self, context, output: BasicVector) -> None:
+        output.SetAtIndex(0, float(self._now(context).design_index))
+
+    def _calc_speed(self, context, output: BasicVector) -> None:
+        output.SetAtIndex(0, self._now(context).speed_command_mps)
+
+    def _calc_radius(self, context, output: BasicVector) -> None:
+        output.SetAtIndex(0, self._now(context).radius)
+
+    def _calc_status(self, context, output: BasicVector) -> None:
+        output.SetAtIndex(0, float(self._now(context).status_code))

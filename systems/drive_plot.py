@@ -1,0 +1,74 @@
+"""Plots and tape files of drives (:func:`systems.driving.drive`): lateral offset, speed and
+the certified interval against the true stiffness, one column per drive."""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+
+TAPE_COLUMNS = ("time_s", "e1_m", "e1dot_mps", "e2_rad", "e2dot_radps", "steering_rad",
+                "speed_mps", "speed_command_mps", "arc_length_m", "curvature_per_m",
+                "interval_lo_n_per_rad", "interval_hi_n_per_rad", "true_stiffness_n_per_rad",
+                "design_index", "certified_radius", "status")
+
+
+def tape_matrix(tape) -> np.ndarray:
+    """The tape as an (N, len(TAPE_COLUMNS)) float array."""
+    return np.column_stack([
+        tape.times_s, tape.states, tape.steering_rad, tape.speed_mps, tape.speed_command_mps,
+        tape.arc_length_m, tape.curvature_per_m, tape.interval_n_per_rad,
+        tape.true_stiffness_n_per_rad, tape.design_index, tape.certified_radius, tape.status])
+
+
+def tape_bytes(results, path: str) -> bytes:
+    """CSV (one block per drive, a ``pipeline`` column first) or NPZ (one array per drive)."""
+    if str(path).lower().endswith(".npz"):
+        buf = io.BytesIO()
+        np.savez_compressed(buf, columns=np.array(TAPE_COLUMNS), **{
+            f"{r.summary['pipeline']}_{i}": tape_matrix(r.tape) for i, r in enumerate(results)})
+        return buf.getvalue()
+    lines = ["pipeline," + ",".join(TAPE_COLUMNS)]
+    for r in results:
+        for row in tape_matrix(r.tape):
+            lines.append(r.summary["pipeline"] + "," + ",".join(f"{v:.6g}" for v in row))
+    return ("\n".join(lines) + "\n").encode()
+
+
+def drive_figure_png(results) -> bytes:
+    """Lateral offset (with the lane margin), speed (with the command) and the interval in
+    force against the true stiffness, for each drive side by side."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(3, len(results), figsize=(5.5 * len(results), 7.5), sharex="col",
+                             squeeze=False)
+    for j, r in enumerate(results):
+        t, tape, s = r.tape.times_s, r.tape, r.summary
+        ax = axes[0, j]
+        ax.plot(t, tape.lateral_offset_m, label="e1")
+        for sign in (1, -1):
+            ax.axhline(sign * tape.lane_margin_m, color="r", ls=":", lw=1)
+        ax.set_ylabel("lateral offset e1 (m)")
+        ax.set_title(f"{s['scenario']}: {s['pipeline']}, attack {s['attack']} "
+                     f"(eps {s['attack_eps']:g})" + (" LEFT LANE" if s["left_lane"] else ""))
+        ax = axes[1, j]
+        ax.plot(t, tape.speed_mps, label="speed")
+        ax.step(t, tape.speed_command_mps, where="post", ls="--", label="command (look-ahead)")
+        ax.set_ylabel("speed (m/s)")
+        ax.legend(fontsize=7)
+        ax = axes[2, j]
+        ax.fill_between(t, tape.interval_n_per_rad[:, 0] / 1e3, tape.interval_n_per_rad[:, 1] / 1e3,
+                        step="post", alpha=0.3, label="interval (look-ahead)")
+        ax.plot(t, tape.true_stiffness_n_per_rad / 1e3, "k", lw=1, label="true C (at the car)")
+        ax.set_ylabel("stiffness (kN/rad)")
+        ax.set_xlabel("time (s)")
+        ax.legend(fontsize=7)
+        for a in axes[:, j]:
+            a.grid(alpha=0.3)
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
+    plt.close(fig)
+    return buf.getvalue()

@@ -1,0 +1,402 @@
+"""The certified closed loop: camera frame to steering in one Drake Diagram (DESIGN 6, issue 7).
+
+    longitudinal --arc length--> camera --frame--> attacker --frame--> perception smoothing
+         ^  |                                                               | perception
+         |  +--arc length--> route (curvature, true C, mu of the car's segment)
+         |                                                                  v
+         +--------------------------decision------------------------ certified interval
+    longitudinal --speed, design in force--> switching L1 controller --> Saturation --> plant
+    plant (Fiala) <-- true C, mu, curvature (route), speed (longitudinal); state --> controller
+
+Timing per camera tick k (period T, t_k = k T): the camera takes a frame at t_k, perception
+certifies it at t_k + T/4, the interval block decides at t_k + T/2 (perception latency T/2),
+the longitudinal block takes the decision into its speed/design profile at t_k + 3T/4. The
+decision applies from the look-ahead point the frame showed; the car reaches a slower command
+before that point and the controller switches to the point's design when the car gets there.
+
+The non-robust baseline is the same Diagram with ``pipeline="base"``: the raw prediction of
+the base model f, the predicted label's own interval and design, attacked by PGD on f.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import time
+from collections.abc import Callable
+
+import numpy as np
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
+from pydrake.systems.primitives import LogVectorOutput, Saturation
+
+from drake_cert.config import ConditionsTable, Settings, VehicleParams
+from drake_cert.errors import ConfigError
+from synthesis.design import ControllerDesign
+from synthesis.selection import envelope_design_index, preset_designs
+from systems import streams
+from systems.attacker import Attacker
+from systems.camera import CameraSource
+from systems.certified_interval import CertifiedInterval
+from systems.longitudinal import LongitudinalMotion
+from systems.perception_smoothing import PerceptionSmoothing
+from systems.plants import NonlinearLateralPlant, body_state_from_error
+from systems.route import Route, RouteSource
+from systems.scenario import Scenario
+from systems.switching_controller import SwitchingL1Controller
+
+OFF_ROAD_M = 5.0  # |e1| (m) at which a drive ends: the car has left its lane for good
+REST_LIMIT_S = 5.0  # a drive ends after the car has rested this long (a stop for good)
+CALIBRATION = 5  # stream purpose of the regression calibration (beside systems.streams')
+
+
+@dataclasses.dataclass
+class DriveTape:
+    """Logged signals of one drive, sampled every tape period (SI units)."""
+
+    times_s: np.ndarray  # (N,)
+    states: np.ndarray  # (N, 4) s = [e1 (m), e1dot (m/s), e2 (rad), e2dot (rad/s)]
+    steering_rad: np.ndarray  # (N,) applied (saturated) steering
+    speed_mps: np.ndarray  # (N,) forward speed
+    speed_command_mps: np.ndarray  # (N,) latest decision's speed command (look-ahead point)
+    arc_length_m: np.ndarray  # (N,) distance along the route
+    curvature_per_m: np.ndarray  # (N,) curvature at the car
+    interval_n_per_rad: np.ndarray  # (N, 2) latest certified interval (look-ahead point)
+    true_stiffness_n_per_rad: np.ndarray  # (N,) true C of the segment the car is on
+    design_index: np.ndarray  # (N,) design the controller is running
+    certified_radius: np.ndarray  # (N,) radius of the latest interval (0: none)
+    status: np.ndarray  # (N,) 0 certified, 1 envelope, 2 stop, 3 base
+    lane_margin_m: float
+
+    @property
+    def lateral_offset_m(self) -> np.ndarray:
+        return self.states[:, 0]
+
+
+@dataclasses.dataclass
+class TickLog:
+    """One row per camera tick: the decision and the truth of the segment its frame showed."""
+
+    times_s: np.ndarray
+    interval_n_per_rad: np.ndarray  # (K, 2)
+    seen_stiffness_n_per_rad: np.ndarray  # (K,)
+    status: np.ndarray  # (K,)
+    design_index: np.ndarray  # (K,) design the block chose for the look-ahead point
+
+
+@dataclasses.dataclass
+class DrivingDiagram:
+    """The built Diagram and what :func:`drive` needs to run and read it."""
+
+    diagram: Diagram
+    scenario: Scenario
+    route: Route
+    designs: list[ControllerDesign]
+    systems: dict  # name -> system
+    loggers: dict  # name -> VectorLogSink (tape period)
+    tick_loggers: dict  # name -> VectorLogSink (camera period)
+    initial_speed_mps: float
+    vehicle: VehicleParams
+
+
+def with_overrides(scenario: Scenario, *, pipeline: str | None = None, attack: str | None = None,
+                   eps: float | None = None, seed: int | None = None) -> Scenario:
+    """A copy of ``scenario`` with the command line's choices; validated."""
+    perception, attack_cfg = scenario.perception, scenario.attack
+    if pipeline is not None:
+        perception = dataclasses.replace(perception, pipeline=pipeline)
+    if attack is not None:
+        attack_cfg = dataclasses.replace(attack_cfg, kind=attack)
+    if eps is not None:
+        attack_cfg = dataclasses.replace(attack_cfg, eps=float(eps))
+    out = dataclasses.replace(scenario, perception=perception, attack=attack_cfg,
+                              seed=scenario.seed if seed is None else int(seed))
+    out.validate("scenario")
+    return out
+
+
+def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> float:
+    """Run-time conformal beta of the median-smoothed regressor (DESIGN 3), largest over labels."""
+    from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+    from drake_cert.perception.datasets import load_split
+
+    p = scenario.perception
+    cal = load_split(p.preset, "calibration", conditions=conditions).per_class(
+        p.calibration_frames_per_class)
+    calib = calibrate_conformal(
+        MedianSmoothedRegressor(model, p.sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
+        cal.labels.tolist(), n=p.calibration_n, batch_size=min(p.batch_size, p.calibration_n),
+        alpha_m=p.alpha_m, alpha_c=p.alpha_c,
+        seed=streams.stream_seed(scenario.seed, CALIBRATION))
+    return calib.beta
+
+
+def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
+                                    settings: Settings, conditions: ConditionsTable,
+                                    designs: list[ControllerDesign],
+                                    tape_period_s: float = 0.05) -> DrivingDiagram:
+    """Wire route, camera, attacker, perception, certified interval, longitudinal motion,
+    switching L1 controller, Saturation and the Fiala plant into one Diagram, with logs.
+
+    ``designs``: a synthesized design table (every contiguous label range of the scenario's
+    preset must be in it). The certified pipeline runs the smoothed model at
+    ``perception.sigma``; the base pipeline runs the model at ``perception.base_sigma``
+    (0: the plain f) and is attacked by PGD on that model.
+    """
+    from drake_cert.perception.models import load_model
+
+    scenario.validate("scenario")
+    p, cam, att = scenario.perception, scenario.camera, scenario.attack
+    if scenario.controller.law != "piecewise_constant":
+        raise ConfigError("the driving Diagram runs the piecewise-constant law (controller.law);"
+                          " the gradient law is available in `drake-cert simulate`")
+    certified = p.pipeline == "certified"
+    table = preset_designs(designs, conditions, p.preset)
+    envelope = envelope_design_index(table, conditions, p.preset)
+    route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
+                        transition_m=scenario.transition_m)
+    sigma = p.sigma if certified else p.base_sigma
+    model = load_model(p.preset, p.task, sigma)
+    labels = list(conditions.preset(p.preset).labels)
+    period = 1.0 / cam.rate_hz
+    v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)
+    beta = _regression_beta(model, scenario, conditions) \
+        if certified and p.task == "regress" else math.inf
+
+    b = DiagramBuilder()
+    add = b.AddNamedSystem
+    motion = add("longitudinal_motion", LongitudinalMotion(
+        max_decel_mps2=scenario.motion.max_decel_mps2,
+        max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
+        initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
+        rate_hz=cam.rate_hz, offset_s=0.75 * period))
+    road = add("route", RouteSource(route))
+    camera = add("camera", CameraSource(route, conditions, p.preset, rate_hz=cam.rate_hz,
+                                        look_ahead_m=cam.look_ahead_m,
+                                        frame_size=cam.frame_size, seed=scenario.seed,
+                                        frames_dir=cam.frames_dir or None))
+    attacker = add("attacker", Attacker(
+        att.kind, eps=att.eps, target="smoothed" if certified else "base", model=model,
+        sigma=sigma, task=p.task, seed=scenario.seed, steps=att.steps,
+        noise_draws=att.noise_draws, frame_size=cam.frame_size))
+    perception = add("perception_smoothing", PerceptionSmoothing(
+        model, mode=p.pipeline, task=p.task, sigma=sigma,
+        n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
+        offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
+        frame_size=cam.frame_size))
+    interval = add("certified_interval", CertifiedInterval(
+        table, conditions, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
+        regression_beta=beta, dwell_time_s=scenario.controller.dwell_time_s,
+        rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
+    controller = add("switching_l1_controller", SwitchingL1Controller(
+        vehicle=vehicle, designs=table, settings=settings, initial_design_index=envelope,
+        initial_speed_mps=v0))
+    limit = vehicle.steering_limit_rad
+    saturation = add("steering_saturation", Saturation([-limit], [limit]))
+    plant = add("plant", NonlinearLateralPlant(vehicle,
+                                               stop_speed_mps=scenario.motion.stop_speed_mps))
+
+    b.Connect(motion.GetOutputPort("arc_length_m"), road.GetInputPort("arc_length_m"))
+    b.Connect(motion.GetOutputPort("arc_length_m"), camera.GetInputPort("arc_length_m"))
+    b.Connect(camera.GetOutputPort("frame"), attacker.GetInputPort("frame"))
+    b.Connect(attacker.GetOutputPort("frame"), perception.GetInputPort("frame"))
+    b.Connect(perception.GetOutputPort("perception"), interval.GetInputPort("perception"))
+    b.Connect(interval.GetOutputPort("decision"), motion.GetInputPort("decision"))
+    b.Connect(plant.GetOutputPort("state"), controller.GetInputPort("state"))
+    b.Connect(road.GetOutputPort("curvature_per_m"), controller.GetInputPort("curvature_per_m"))
+    b.Connect(motion.GetOutputPort("speed_mps"), controller.GetInputPort("speed_mps"))
+    b.Connect(motion.GetOutputPort("design_index"), controller.GetInputPort("design_index"))
+    b.Connect(controller.GetOutputPort("steering_rad"), saturation.get_input_port())
+    b.Connect(saturation.get_output_port(), plant.GetInputPort("steering_rad"))
+    for port in ("stiffness_n_per_rad", "friction_mu", "curvature_per_m"):
+        b.Connect(road.GetOutputPort(port), plant.GetInputPort(port))
+    b.Connect(motion.GetOutputPort("speed_mps"), plant.GetInputPort("speed_mps"))
+
+    def log(port, every=tape_period_s):
+        return LogVectorOutput(port, b, every)
+
+    loggers = {
+        "state": log(plant.GetOutputPort("state")),
+        "steering": log(saturation.get_output_port()),
+        "speed": log(motion.GetOutputPort("speed_mps")),
+        "arc_length": log(motion.GetOutputPort("arc_length_m")),
+        "curvature": log(road.GetOutputPort("curvature_per_m")),
+        "true_stiffness": log(road.GetOutputPort("stiffness_n_per_rad")),
+        "design": log(controller.GetOutputPort("active_design_index")),
+        "interval": log(interval.GetOutputPort("interval_n_per_rad")),
+        "speed_command": log(interval.GetOutputPort("speed_command_mps")),
+        "radius": log(interval.GetOutputPort("certified_radius")),
+        "status": log(interval.GetOutputPort("status")),
+    }
+    # Camera-period logs publish at t_k, before that tick's updates: each sample holds the
+    # decision of tick k-1 and the truth of the frame it came from.
+    tick_loggers = {
+        "interval": log(interval.GetOutputPort("interval_n_per_rad"), period),
+        "seen_stiffness": log(camera.GetOutputPort("seen_stiffness_n_per_rad"), period),
+        "status": log(interval.GetOutputPort("status"), period),
+        "design": log(interval.GetOutputPort("design_index"), period),
+    }
+    diagram = b.Build()
+    diagram.set_name(f"certified_driving_{p.pipeline}")
+    systems_ = dict(motion=motion, route=road, camera=camera, attacker=attacker,
+                    perception=perception, interval=interval, controller=controller,
+                    saturation=saturation, plant=plant)
+    return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
+                          v0, vehicle)
+
+
+@dataclasses.dataclass
+class DriveResult:
+    """What a drive returns (plain data: it crosses process boundaries)."""
+
+    tape: DriveTape
+    ticks: TickLog
+    summary: dict
+    route: Route
+    lane_width_m: float
+
+
+def _read(logger, context) -> tuple[np.ndarray, np.ndarray]:
+    log = logger.FindLog(context)
+    return log.sample_times().copy(), log.data().T.copy()
+
+
+def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = None,
+          t_final_s: float | None = None) -> DriveResult:
+    """Simulate the Diagram to the route's end (or ``t_final_s``); returns tape and summary.
+
+    A drive ends when the car passes the end of the route, leaves the road (|e1| > 5 m, the
+    Frenet frame stops making sense), has rested for 5 s (a stop for good), or at the time
+    limit (the scenario's ``t_final_s``, else the route at 5 m/s plus 10 s). ``progress``
+    receives simulated seconds as they pass.
+    """
+    scenario, route = built.scenario, built.route
+    plant = built.systems["plant"]
+    motion = built.systems["motion"]
+    limit = t_final_s or scenario.t_final_s or route.total_length_m / 5.0 + 10.0
+    simulator = Simulator(built.diagram)
+    ApplySimulatorConfig(scenario.simulator, simulator)
+    context = simulator.get_mutable_context()
+    kappa0 = float(route.curvature_at(0.0))
+    s0 = np.zeros(4)
+    plant.body_state_subsystem().GetMyMutableContextFromRoot(context).SetContinuousState(
+        np.asarray(body_state_from_error(s0, built.initial_speed_mps, kappa0), float))
+    built.systems["controller"].set_initial_state(context, s0, kappa0)
+    plant_context = plant.GetMyContextFromRoot(context)
+    motion_context = motion.GetMyContextFromRoot(context)
+    state_port, arc_port = plant.GetOutputPort("state"), motion.GetOutputPort("arc_length_m")
+    speed_port = motion.GetOutputPort("speed_mps")
+    ending = {"reason": "time limit", "rest_since": None}
+
+    def monitor(root):
+        t = root.get_time()
+        if abs(state_port.Eval(plant_context)[0]) > OFF_ROAD_M:
+            ending["reason"] = "off road"
+            return EventStatus.ReachedTermination(built.diagram, "off road")
+        if arc_port.Eval(motion_context)[0] >= route.total_length_m:
+            ending["reason"] = "route end"
+            return EventStatus.ReachedTermination(built.diagram, "route end")
+        if speed_port.Eval(motion_context)[0] <= 1e-6:
+            ending["rest_since"] = ending["rest_since"] if ending["rest_since"] is not None else t
+            if t - ending["rest_since"] >= REST_LIMIT_S:
+                ending["reason"] = "stopped"
+                return EventStatus.ReachedTermination(built.diagram, "stopped")
+        else:
+            ending["rest_since"] = None
+        return EventStatus.Succeeded()
+
+    simulator.set_monitor(monitor)
+    start = time.perf_counter()
+    simulator.Initialize()
+    t = 0.0
+    while t < limit and ending["reason"] == "time limit":
+        t_next = min(t + 1.0, limit)
+        simulator.AdvanceTo(t_next)
+        if progress is not None:
+            progress(context.get_time() - t)
+        t = context.get_time()
+        if t < t_next - 1e-9:  # the monitor ended the drive
+            break
+    wall = time.perf_counter() - start
+    tape, ticks = _tapes(built, context)
+    summary = summarize_drive(tape, ticks, scenario=scenario, route=route,
+                              simulated_s=context.get_time(), wall_s=wall,
+                              ending=ending["reason"])
+    return DriveResult(tape, ticks, summary, route, built.vehicle.lane_width_m)
+
+
+def drive_scenario(scenario: Scenario, *, vehicle: VehicleParams, settings: Settings,
+                   conditions: ConditionsTable, designs: list[ControllerDesign],
+                   progress: Callable[[float], None] | None = None) -> DriveResult:
+    """Build the Diagram for ``scenario`` and drive it (one call; usable in a worker process)."""
+    import torch
+
+    torch.set_num_threads(1)
+    built = build_certified_driving_diagram(scenario, vehicle=vehicle, settings=settings,
+                                            conditions=conditions, designs=designs)
+    return drive(built, progress=progress)
+
+
+def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
+    logs = {k: _read(v, context) for k, v in built.loggers.items()}
+    n = min(len(t) for t, _ in logs.values())
+    col = {k: d[:n] for k, (_, d) in logs.items()}
+    tape = DriveTape(
+        times_s=logs["state"][0][:n], states=col["state"], steering_rad=col["steering"][:, 0],
+        speed_mps=col["speed"][:, 0], speed_command_mps=col["speed_command"][:, 0],
+        arc_length_m=col["arc_length"][:, 0], curvature_per_m=col["curvature"][:, 0],
+        interval_n_per_rad=col["interval"], true_stiffness_n_per_rad=col["true_stiffness"][:, 0],
+        design_index=col["design"][:, 0].astype(int), certified_radius=col["radius"][:, 0],
+        status=col["status"][:, 0].astype(int), lane_margin_m=built.vehicle.lane_margin_m)
+    ticks_raw = {k: _read(v, context) for k, v in built.tick_loggers.items()}
+    m = min(len(t) for t, _ in ticks_raw.values())
+    seen = ticks_raw["seen_stiffness"][1][:m, 0]
+    keep = np.isfinite(seen)  # the first sample precedes any frame
+    ticks = TickLog(times_s=ticks_raw["interval"][0][:m][keep],
+                    interval_n_per_rad=ticks_raw["interval"][1][:m][keep],
+                    seen_stiffness_n_per_rad=seen[keep],
+                    status=ticks_raw["status"][1][:m, 0][keep].astype(int),
+                    design_index=ticks_raw["design"][1][:m, 0][keep].astype(int))
+    return tape, ticks
+
+
+def time_left_lane(tape: DriveTape) -> float | None:
+    """First logged time (s) at which |e1| exceeded the lane margin; None if never."""
+    out = np.nonzero(np.abs(tape.lateral_offset_m) > tape.lane_margin_m)[0]
+    return float(tape.times_s[out[0]]) if len(out) else None
+
+
+def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
+                    simulated_s: float, wall_s: float, ending: str) -> dict:
+    """The ``drive --json`` object (DESIGN 7 metrics of one drive)."""
+    left = time_left_lane(tape)
+    covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
+        (ticks.seen_stiffness_n_per_rad <= ticks.interval_n_per_rad[:, 1])
+    dt = np.diff(tape.times_s)
+    mean_speed = float(np.sum(tape.speed_mps[:-1] * dt) / np.sum(dt)) if len(dt) else \
+        float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
+    peak = float(np.max(np.abs(tape.lateral_offset_m))) if len(tape.times_s) else 0.0
+    return {
+        "scenario": scenario.name,
+        "pipeline": scenario.perception.pipeline,
+        "task": scenario.perception.task,
+        "attack": scenario.attack.kind,
+        "attack_eps": scenario.attack.eps,
+        "certified_eps": scenario.perception.eps,
+        "left_lane": left is not None,
+        "peak_abs_e1_m": peak,
+        "time_left_lane_s": left,
+        "mean_speed_mps": mean_speed,
+        "min_speed_mps": float(np.min(tape.speed_mps)) if len(tape.speed_mps) else 0.0,
+        "distance_m": float(tape.arc_length_m[-1]) if len(tape.arc_length_m) else 0.0,
+        "route_length_m": route.total_length_m,
+        "ending": ending,
+        "simulated_s": float(simulated_s),
+        "wall_s": float(wall_s),
+        "real_time_factor": float(simulated_s / wall_s) if wall_s > 0 else None,
+        "camera_ticks": int(len(ticks.times_s)),
+        "interval_covers_true_fraction": float(np.mean(covers)) if len(covers) else None,
+        "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
+        "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
+        "seed": scenario.seed,
+    }

@@ -1,0 +1,184 @@
+"""Perception with its certificate, once per camera tick (DESIGN 3 and 6).
+
+A periodic unrestricted update at the camera rate (default offset T/4, after the camera's
+tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult`:
+
+- ``mode="certified"``, ``task="classify"``: the smoothed classifier's certificate at the
+  observed frame (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation
+  samples, joint Clopper-Pearson bounds at ``alpha``), from which the run-time interval of
+  any label range is read off (``systems.certified_interval``).
+- ``mode="certified"``, ``task="regress"``: median smoothing's ``(median, lower, upper)`` at
+  budget ``eps`` (:meth:`MedianSmoothedRegressor.certify_interval`).
+- ``mode="base"``: the raw prediction of the model f (label, or stiffness in N/rad): the
+  non-robust baseline.
+
+A frame that is not a finite float [3, H, W] image in [0, 1] of the expected size gives
+``frame_ok = False`` and the reason in ``error`` (never an exception, never a prediction).
+The certificate of tick k draws its noise from the stream ``(seed, CERTIFICATE, k)``.
+Cost per tick: n0 + n forward passes of the model (about 0.25 s per 1000 on one core).
+"""
+
+import dataclasses
+import math
+
+import torch
+from pydrake.common.value import AbstractValue
+from pydrake.systems.framework import EventStatus, LeafSystem
+
+from drake_cert.certification.classifier import (
+    ClassCertificate,
+    SmoothedClassifier,
+    check_enough_samples,
+)
+from drake_cert.certification.regressor import MedianSmoothedRegressor
+from drake_cert.certification.sampler import check_frame
+from drake_cert.certification.statistics import percentile_bound_indices
+from drake_cert.errors import CertificationError, ConfigError
+from systems import streams
+from systems.camera import CameraFrame
+
+MODES = ("certified", "base")
+TASKS = ("classify", "regress")
+
+
+@dataclasses.dataclass(frozen=True)
+class PerceptionResult:
+    """What perception saw at one tick; truth fields are copied from the frame for logs."""
+
+    time_s: float  # time of the perception update (s)
+    tick: int  # camera tick of the frame (-1: no frame yet)
+    position_m: float  # look-ahead point of the frame (m)
+    frame_ok: bool  # False: bad frame (NaN, wrong shape, outside [0, 1]) or failed certificate
+    error: str  # why frame_ok is False ("" otherwise)
+    mode: str  # "certified" or "base"
+    task: str  # "classify" or "regress"
+    certificate: ClassCertificate | None = None  # certified classification
+    base_label: int | None = None  # raw label of f (classification, both modes)
+    regression: tuple[float, float, float] | None = None  # certified (median, lower, upper)
+    base_value_n_per_rad: float | None = None  # raw stiffness prediction of f (base regress)
+    label_index: int = -1  # truth: condition of the seen segment
+    stiffness_n_per_rad: float = math.nan  # truth: stiffness of the seen segment (N/rad)
+    friction_mu: float = math.nan  # truth: friction of the seen segment
+    attack: str = "none"  # what the attacker did to the frame
+
+    @staticmethod
+    def no_frame(mode: str, task: str) -> "PerceptionResult":
+        """The state before the first tick: no frame, handled like a bad frame."""
+        return PerceptionResult(time_s=0.0, tick=-1, position_m=0.0, frame_ok=False,
+                                error="no frame yet", mode=mode, task=task)
+
+
+class PerceptionSmoothing(LeafSystem):
+    """Input ``frame`` (abstract :class:`CameraFrame`); abstract state and output
+    ``perception`` (:class:`PerceptionResult`).
+
+    Args:
+        model: classifier (logits over ``label_names``) or stiffness regressor, eval mode.
+        mode: "certified" (smoothed, certificate) or "base" (raw f).
+        task: "classify" or "regress".
+        sigma: noise level of the smoothing (pixel units); unused in base mode.
+        n0, n, alpha, batch_size: CERTIFY's settings (n0 unused for regression).
+        rate_hz: camera rate; offset_s: update offset (default a quarter period).
+        seed: scenario seed (stream CERTIFICATE per tick).
+        label_names: the classifier's labels (grippiest first); their count is K.
+        eps: regression budget of the median bounds (L2, pixel units).
+        frame_size: expected frames are [3, frame_size, frame_size].
+        compile: compile the model for the smoothing (see :class:`SmoothedClassifier`).
+    """
+
+    def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
+                 task: str = "classify", sigma: float = 0.25, n0: int = 100, n: int = 1000,
+                 alpha: float = 0.001, batch_size: int = 500, rate_hz: float = 10.0,
+                 offset_s: float | None = None, seed: int = 0,
+                 label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
+                 frame_size: int = 64, compile: bool = False):
+        super().__init__()
+        if mode not in MODES:
+            raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
+        if task not in TASKS:
+            raise ConfigError(f"perception task {task!r}; expected one of {', '.join(TASKS)}")
+        if not (math.isfinite(rate_hz) and rate_hz > 0):
+            raise ConfigError(f"perception: rate_hz = {rate_hz!r} must be positive")
+        self.model = model.eval()
+        self.mode, self.task = mode, task
+        self.n0, self.n, self.alpha = int(n0), int(n), float(alpha)
+        self.batch_size = int(batch_size)
+        self.seed = int(seed)
+        self.eps = float(eps)
+        self.label_names = tuple(label_names)
+        self.frame_shape = (3, int(frame_size), int(frame_size))
+        self.period_s = 1.0 / float(rate_hz)
+        self.offset_s = 0.25 * self.period_s if offset_s is None else float(offset_s)
+        self._smooth = None
+        if mode == "certified":
+            if task == "classify":
+                if len(self.label_names) < 2:
+                    raise ConfigError("perception: classification needs label_names (>= 2)")
+                check_enough_samples(self.n, self.alpha, len(self.label_names))
+                self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
+                                                  compile=compile)
+            else:
+                percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
+                self._smooth = MedianSmoothedRegressor(model, sigma, compile=compile)
+
+        initial = PerceptionResult.no_frame(mode, task)
+        self._in = self.DeclareAbstractInputPort(
+            "frame", AbstractValue.Make(CameraFrame.placeholder(int(frame_size))))
+        state_index = self.DeclareAbstractState(AbstractValue.Make(initial))
+        self.DeclarePeriodicUnrestrictedUpdateEvent(self.period_s, self.offset_s, self._update)
+        self.DeclareAbstractOutputPort("perception", lambda: AbstractValue.Make(initial),
+                                       self._calc_perception,
+                                       prerequisites_of_calc={self.abstract_state_ticket(state_index)})
+
+    def frame_problem(self, image) -> str:
+        """Why a frame cannot be perceived ("" when it can)."""
+        if not isinstance(image, torch.Tensor):
+            return f"frame is a {type(image).__name__}, not a tensor"
+        if tuple(image.shape) != self.frame_shape:
+            return f"frame has shape {list(image.shape)}; expected {list(self.frame_shape)}"
+        try:
+            check_frame(image)
+        except CertificationError as e:
+            return str(e)
+        return ""
+
+    def perceive(self, frame: CameraFrame, time_s: float) -> PerceptionResult:
+        """The result for one frame (pure: same frame and tick, same result)."""
+        base = PerceptionResult(time_s=float(time_s), tick=frame.tick,
+                                position_m=frame.position_m, frame_ok=True, error="",
+                                mode=self.mode, task=self.task, label_index=frame.label_index,
+                                stiffness_n_per_rad=frame.stiffness_n_per_rad,
+                                friction_mu=frame.friction_mu, attack=frame.attack)
+        problem = self.frame_problem(frame.image)
+        if problem:
+            return dataclasses.replace(base, frame_ok=False, error=problem)
+        x = frame.image.float()
+        seed = streams.stream_seed(self.seed, streams.CERTIFICATE, frame.tick)
+        try:
+            if self.task == "classify":
+                with torch.inference_mode():
+                    base_label = int(self.model(x[None]).argmax(dim=1)[0])
+                if self.mode == "base":
+                    return dataclasses.replace(base, base_label=base_label)
+                cert = self._smooth.certify(x, self.n0, self.n, self.alpha, self.batch_size,
+                                            seed=seed)
+                return dataclasses.replace(base, base_label=base_label, certificate=cert)
+            if self.mode == "base":
+                with torch.inference_mode():
+                    value = float(self.model(x[None]).reshape(-1)[0])
+                if not math.isfinite(value):
+                    raise CertificationError("regressor returned a non-finite stiffness")
+                return dataclasses.replace(base, base_value_n_per_rad=value)
+            median, lower, upper = self._smooth.certify_interval(x, self.eps, self.n, self.alpha,
+                                                                 self.batch_size, seed=seed)
+            return dataclasses.replace(base, regression=(median, lower, upper))
+        except CertificationError as e:
+            return dataclasses.replace(base, frame_ok=False, error=str(e))
+
+    def _update(self, context, state) -> EventStatus:
+        result = self.perceive(self._in.Eval(context), context.get_time())
+        state.get_mutable_abstract_state(0).set_value(result)
+        return EventStatus.Succeeded()
+
+    def _calc_perception(self, context, output: AbstractValue) -> None:
+        output.set_value(context.get_abstract_state(0).get_value())

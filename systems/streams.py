@@ -1,0 +1,26 @@
+"""Independent random streams of the driving diagram (DESIGN 3: no noise stream is reused).
+
+Every random draw of a drive comes from ``numpy.random.SeedSequence([seed, purpose, *keys])``
+with a distinct ``purpose`` per use: the route's true stiffness per segment, the camera's
+frame per tick, the attack per tick, the certificate per tick. Same scenario seed, same
+draws; different purposes never share a stream.
+"""
+
+import numpy as np
+
+ROUTE = 1  # true stiffness of each segment (key: segment index)
+CAMERA = 2  # the rendered (or chosen) frame of each tick (key: tick)
+ATTACK = 3  # the attack's random start and noise draws at each tick (key: tick)
+CERTIFICATE = 4  # the smoothing noise of each tick's certificate (key: tick)
+
+
+def stream_seed(seed: int, purpose: int, *keys: int) -> int:
+    """A 63-bit integer seed for (seed, purpose, keys): for ``torch.Generator.manual_seed``."""
+    ss = np.random.SeedSequence([int(seed), int(purpose), *(int(k) for k in keys)])
+    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+
+
+def stream_rng(seed: int, purpose: int, *keys: int) -> np.random.Generator:
+    """A numpy Generator on the stream (seed, purpose, keys)."""
+    return np.random.default_rng(np.random.SeedSequence([int(seed), int(purpose),
+                                                         *(int(k) for k in keys)]))

@@ -1,0 +1,272 @@
+"""Every bad input gets one readable line and exit code 2 from the CLI (or a typed exception
+from the API) and leaves no partial file (issue 6, item 3).
+
+In-process ``cli.main`` calls with ``capsys``; a subprocess only where the test needs a fresh
+interpreter (is torch imported by ``--help``?) or a signal (Ctrl-C while torch is imported).
+"""
+
+import math
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from design_fixtures import lqr_design
+
+from drake_cert import cli
+from drake_cert.certification.classifier import (
+    SmoothedClassifier,
+    check_enough_samples,
+    min_certifying_samples,
+)
+from drake_cert.certification.statistics import conformal_beta, min_calibration_frames
+from drake_cert.config import load_settings, load_vehicle
+from drake_cert.errors import CertificationError, ConfigError
+from drake_cert.io import provenance
+from drake_cert.perception.models import (
+    SmallResNet,
+    StiffnessRegressor,
+    file_sha256,
+    load_model_file,
+    model_path,
+    save_model,
+)
+from synthesis.design_io import DesignTable, save_design_table
+from synthesis.table import synthesize_design
+from systems.closed_loop import simulate
+from systems.road import Road
+
+ROOT = Path(__file__).resolve().parents[1]
+VEHICLE = load_vehicle()
+SETTINGS = load_settings()
+DESIGN = lqr_design(VEHICLE, 40_000.0, 60_000.0, 12.0, labels=("heavy_rain",))
+CERTIFY = ["certify", "--preset", "rtk-like", "--frames", "3", "--n0", "10", "--n", "200",
+           "--batch-size", "100", "--compile", "off", "--attack-steps", "2"]
+
+
+def one_line_exit_2(capsys, argv) -> str:
+    """Run the CLI; assert exit code 2 and exactly one stderr line; return that line."""
+    code = cli.main(argv)
+    err = capsys.readouterr().err.strip()
+    assert code == 2, err
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+@pytest.fixture(scope="module")
+def designs_file(tmp_path_factory):
+    path = tmp_path_factory.mktemp("designs") / "designs.yaml"
+    save_design_table(path, DesignTable([DESIGN], VEHICLE, SETTINGS, provenance(0)))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def models(tmp_path_factory):
+    """Untrained 16x16 rtk-like classifier and regressor files (sigma 0.25)."""
+    root = tmp_path_factory.mktemp("models")
+    torch.manual_seed(0)
+    classifier = SmallResNet(3, width=4).eval()
+    cpath = save_model(classifier, model_path("rtk-like", "classify", 0.25, root),
+                       meta={"image_size": 16})
+    head = torch.nn.Linear(16, 1)
+    save_model(StiffnessRegressor(classifier.backbone, head),
+               model_path("rtk-like", "regress", 0.25, root),
+               meta={"image_size": 16, "classifier_file": cpath.name,
+                     "classifier_sha256": file_sha256(cpath)})
+    return str(root)
+
+
+@pytest.fixture
+def regular_file(tmp_path) -> Path:
+    path = tmp_path / "a_file"
+    path.write_text("not a folder")
+    return path
+
+
+# --------------------------------------------------------------------------- output paths
+
+@pytest.mark.parametrize("option, name, message", [
+    ("--plot", "sub/e1.png", "is a file, not a folder"),
+    ("--out", "sub/tape.csv", "is a file, not a folder"),
+    ("--out", "tape.txt", "written as .csv or .npz"),
+])
+def test_simulate_refuses_an_unwritable_output_before_simulating(
+        designs_file, regular_file, capsys, option, name, message):
+    target = regular_file / name if name.startswith("sub/") else regular_file.parent / name
+    start = time.perf_counter()
+    err = one_line_exit_2(capsys, ["simulate", "--designs", designs_file, option, str(target)])
+    assert message in err and option in err
+    assert time.perf_counter() - start < 5  # failed before the episode, not after it
+    assert not target.exists()
+
+
+def test_simulate_refuses_a_folder_as_output(designs_file, tmp_path, capsys):
+    folder = tmp_path / "tape.csv"
+    folder.mkdir()
+    assert "is a folder" in one_line_exit_2(
+        capsys, ["simulate", "--designs", designs_file, "--out", str(folder)])
+
+
+@pytest.mark.parametrize("option", ["--out", "--export"])
+def test_generate_refuses_an_unwritable_output_before_rendering(regular_file, capsys, option):
+    target = regular_file / ("grid.png" if option == "--out" else "frames")
+    err = one_line_exit_2(capsys, ["generate", "--preset", "rtk-like", "--per-class", "2",
+                                   "--frames-per-class", "2", option, str(target)])
+    assert "is a file, not a folder" in err and option in err
+    assert regular_file.read_text() == "not a folder"
+
+
+def test_synthesize_out_under_a_regular_file_fails_before_synthesis(regular_file, capsys):
+    start = time.perf_counter()
+    err = one_line_exit_2(capsys, ["synthesize", "--out", str(regular_file / "d.yaml")])
+    assert "is a file, not a folder" in err and "File exists" not in err
+    assert time.perf_counter() - start < 5
+
+
+# --------------------------------------------------------------------------- simulate numbers
+
+@pytest.mark.parametrize("argv, message", [
+    (["--speed", "1e6"], "outside the design speed range [5, 30] m/s"),
+    (["--speed", "2"], "outside the design speed range"),
+    (["--speed", "nan"], "--speed nan must be a positive number"),
+    (["--friction", "3"], "--friction 3 is outside (0, 2]"),
+    (["--friction", "-0.5"], "--friction -0.5 must be a positive number"),
+    (["--radius", "2"], "--radius 2 m must exceed 5 m"),
+    (["--duration", "1e9"], "exceeds 3600 s"),
+    (["--initial-offset", "7"], "|e1(0)| < 5 m"),
+    (["--labels", "heavy_rain+"], "label range 'heavy_rain+'"),
+    (["--labels", "sunny+heavy_rain"], "known: heavy_rain"),
+])
+def test_simulate_numbers_out_of_range_give_one_line(designs_file, capsys, argv, message):
+    err = one_line_exit_2(capsys, ["simulate", "--designs", designs_file, *argv])
+    assert message in err
+
+
+def test_simulate_api_rejects_an_initial_state_of_the_wrong_shape():
+    road = Road.straight()
+    for bad in ([0.0, 0.0, 0.0], np.zeros((2, 2)), [0.0, math.nan, 0.0, 0.0], "abcd"):
+        with pytest.raises(ConfigError, match="initial_state"):
+            simulate(vehicle=VEHICLE, design=DESIGN, settings=SETTINGS,
+                     stiffness_n_per_rad=45e3, friction_mu=0.5, speed_mps=12.0, road=road,
+                     t_final_s=0.1, initial_state=bad)
+
+
+# --------------------------------------------------------------------------- synthesis inputs
+
+@pytest.mark.parametrize("interval, mu, message", [
+    ((60_000.0, 40_000.0), 0.5, "0 < C_lo <= C_hi"),  # reversed
+    ((0.0, 40_000.0), 0.5, "0 < C_lo <= C_hi"),
+    ((-1.0, 40_000.0), 0.5, "0 < C_lo <= C_hi"),
+    ((math.nan, 40_000.0), 0.5, "0 < C_lo <= C_hi"),
+    ((40_000.0,), 0.5, "two numbers"),
+    ((40_000.0, 60_000.0), 0.0, "friction_mu_lo"),
+    ((40_000.0, 60_000.0), math.nan, "friction_mu_lo"),
+    ((40_000.0, 60_000.0), 5.0, "friction_mu_lo"),
+])
+def test_synthesize_design_rejects_bad_intervals_and_friction(interval, mu, message):
+    with pytest.raises(ConfigError, match=message.replace("(", r"\(")):
+        synthesize_design(VEHICLE, interval, mu, SETTINGS)
+
+
+def test_steering_limit_at_or_above_half_pi_is_a_config_error(tmp_path, capsys):
+    text = (ROOT / "drake_cert/data/vehicle.yaml").read_text()
+    bad = tmp_path / "vehicle.yaml"
+    lines = [("steering_limit_rad: 1.5708" if line.startswith("steering_limit_rad:") else line)
+             for line in text.splitlines()]
+    bad.write_text("\n".join(lines) + "\n")
+    with pytest.raises(ConfigError, match="below pi/2"):
+        load_vehicle(bad)
+    assert "below pi/2" in one_line_exit_2(capsys, ["synthesize", "--vehicle", str(bad)])
+
+
+# --------------------------------------------------------------------------- certify inputs
+
+def test_certify_rejects_a_frame_size_other_than_the_models(models, capsys):
+    err = one_line_exit_2(capsys, [*CERTIFY, "--models", models, "--sigma", "0.25",
+                                   "--size", "32"])
+    assert "trained on 16x16 frames" in err
+    smooth = SmoothedClassifier(load_model_file(model_path("rtk-like", "classify", 0.25,
+                                                           models)), 3, 0.25)
+    with pytest.raises(CertificationError, match="frame is 32x32 pixels but the model was "
+                                                 "trained on 16x16"):
+        smooth.certify(torch.full((3, 32, 32), 0.5), 10, 200, 0.001, 100, seed=0)
+
+
+def test_certify_regress_with_too_few_calibration_frames_says_how_many(models, capsys):
+    err = one_line_exit_2(capsys, [*CERTIFY, "--models", models, "--sigma", "0.25",
+                                   "--task", "regress", "--calibration-per-class", "3"])
+    assert "needs at least 99 calibration frames per label" in err
+
+
+def test_min_calibration_frames_is_the_smallest_count_with_a_finite_beta():
+    for alpha_c in (0.01, 0.05, 0.1, 0.2, 0.001):
+        need = min_calibration_frames(alpha_c)
+        assert math.isfinite(conformal_beta(np.ones(need), np.zeros(need), alpha_c)[0])
+        assert conformal_beta(np.ones(need - 1), np.zeros(need - 1), alpha_c)[0] == math.inf
+
+
+@pytest.mark.parametrize("alpha, classes", [(0.25, 2), (0.5, 4), (1 / 64, 2), (0.125, 1),
+                                            (0.001, 3), (0.01, 3)])
+def test_check_enough_samples_names_the_smallest_n_that_works(alpha, classes):
+    need = min_certifying_samples(alpha, classes)
+    check_enough_samples(need, alpha, classes)  # the n the message names certifies
+    with pytest.raises(CertificationError, match=f"use n >= {need}$"):
+        check_enough_samples(need - 1, alpha, classes)
+
+
+def test_certify_frames_dir_that_does_not_exist(models, tmp_path, capsys):
+    err = one_line_exit_2(capsys, [*CERTIFY, "--models", models, "--sigma", "0.25",
+                                   "--frames-dir", str(tmp_path / "missing")])
+    assert "does not exist" in err
+
+
+def test_a_malformed_stiffness_csv_is_a_config_error(tmp_path, capsys):
+    from PIL import Image
+
+    from drake_cert.perception.datasets import load_image_folder
+
+    (tmp_path / "sand").mkdir()
+    Image.new("RGB", (8, 8)).save(tmp_path / "sand" / "a.png")
+    (tmp_path / "stiffness.csv").write_text("file,label,stiffness_n_per_rad\n"
+                                            "sand/a.png,sand,grippy\n")
+    with pytest.raises(ConfigError, match="stiffness.csv:2"):
+        load_image_folder(tmp_path, preset="rtk-like")
+
+
+# --------------------------------------------------------------------------- start-up
+
+def _fresh_python(code: str, **kwargs) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                          cwd=ROOT, timeout=60, **kwargs)
+
+
+def test_certify_help_does_not_import_torch():
+    out = _fresh_python("import sys\nfrom drake_cert import cli\ntry:\n"
+                        "    cli.main(['certify', '--help'])\nexcept SystemExit:\n    pass\n"
+                        "print('TORCH', 'torch' in sys.modules)")
+    assert "--frames-dir" in out.stdout and "TORCH False" in out.stdout
+
+
+def test_ctrl_c_while_a_command_imports_torch_prints_one_line(models):
+    proc = subprocess.Popen([sys.executable, "-m", "drake_cert.cli", *CERTIFY, "--models",
+                             models, "--sigma", "0.25"], cwd=ROOT, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True)
+    time.sleep(0.6)  # inside main; torch's import takes seconds on this machine
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 130, err
+    assert err.strip().splitlines() == ["drake-cert certify: interrupted"]
+
+
+def test_version_prints_the_package_version(capsys):
+    import drake_cert
+
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["--version"])
+    assert exit_info.value.code == 0
+    assert capsys.readouterr().out.strip() == f"drake-cert {drake_cert.__version__}"
+

@@ -1,0 +1,160 @@
+"""The robust conformal interval holds the true stiffness where the classifier is wrong.
+
+The base classifier is analytic: it thresholds the pixel mean of a 1x8x8 frame (bright = sunny,
+mid = light rain, dark = heavy rain) but is deliberately wrong on the brightest frames, which it
+calls heavy rain. Sunny frames are drawn across that region, so the smoothed classifier is
+confidently wrong on about a tenth of them. The old run-time interval (certificate under the
+standing assumption) then misses their true stiffness; the conformal interval keeps its
+guaranteed coverage, clean and under the worst L2 perturbation of the mean (a uniform shift of
+every pixel, the steepest direction for a mean-threshold classifier).
+"""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from scipy.stats import binom
+
+from drake_cert.certification.classifier import SmoothedClassifier
+from drake_cert.certification.conformal import (
+    RobustConformalCalibration,
+    calibrate_robust_conformal,
+    conformal_interval,
+    cp_lower,
+    lower_conformal_quantile,
+)
+from drake_cert.certification.intervals import runtime_classification_interval
+from drake_cert.config import load_conditions
+from drake_cert.errors import CertificationError
+
+PRESET = "carla-like"
+SIGMA = 0.25
+SIDE = 8
+WRONG_ABOVE = 0.9  # the classifier calls frames brighter than this heavy rain (label 2)
+BRIGHTNESS = {0: (0.65, 1.0), 1: (0.45, 0.55), 2: (0.05, 0.35)}  # per true label
+
+
+class MeanThreshold(torch.nn.Module):
+    """Logits of a pixel-mean threshold classifier, wrong (heavy rain) above WRONG_ABOVE."""
+
+    def forward(self, x):
+        m = x.mean(dim=(1, 2, 3))
+        label = torch.where(m > 0.6, 0, torch.where(m > 0.4, 1, 2))
+        label = torch.where(m > WRONG_ABOVE, 2, label)
+        return 10.0 * torch.nn.functional.one_hot(label, 3).to(x.dtype)
+
+
+def make_frames(per_label: int, seed: int):
+    """Constant frames with the true label's brightness range and a true stiffness in its
+    condition interval; returns images [N, 1, 8, 8], labels [N], stiffness [N] (N/rad)."""
+    table = load_conditions()
+    conds = table.preset_conditions(PRESET)
+    rng = np.random.default_rng(seed)
+    labels = np.repeat(np.arange(3), per_label)
+    lo = np.array([BRIGHTNESS[int(k)][0] for k in labels])
+    hi = np.array([BRIGHTNESS[int(k)][1] for k in labels])
+    brightness = lo + (hi - lo) * rng.random(len(labels))
+    c_lo = np.array([conds[k].stiffness_lo_n_per_rad for k in labels])
+    c_hi = np.array([conds[k].stiffness_hi_n_per_rad for k in labels])
+    stiffness = c_lo + (c_hi - c_lo) * rng.random(len(labels))
+    images = torch.tensor(brightness, dtype=torch.float32).view(-1, 1, 1, 1).expand(
+        -1, 1, SIDE, SIDE).contiguous()
+    return images, labels, stiffness
+
+
+def shift(images: torch.Tensor, eps: float, sign: float) -> torch.Tensor:
+    """The L2-eps perturbation that moves the pixel mean most: every pixel by eps/sqrt(D)."""
+    d = images[0].numel()
+    return (images + sign * eps / math.sqrt(d)).clamp(0.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def setup():
+    smooth = SmoothedClassifier(MeanThreshold(), 3, SIGMA)
+    cal_images, cal_labels, _ = make_frames(150, seed=1)
+    calibration = calibrate_robust_conformal(smooth, cal_images, cal_labels, n=1000,
+                                             batch_size=1000, root_seed=0)
+    return smooth, calibration
+
+
+def coverage(smooth, calibration, images, stiffness, eps):
+    table = load_conditions()
+    old, new, widths = [], [], []
+    for i in range(len(images)):
+        cert = smooth.certify(images[i], 100, 2000, 0.001, 2000, seed=10_000 + i)
+        rt = runtime_classification_interval(cert, table, PRESET, eps)
+        ci = conformal_interval(cert, calibration, table, PRESET, eps)
+        y = stiffness[i]
+        old.append(rt.stiffness_lo_n_per_rad <= y <= rt.stiffness_hi_n_per_rad)
+        new.append(ci.stiffness_lo_n_per_rad <= y <= ci.stiffness_hi_n_per_rad)
+        widths.append(ci.width_n_per_rad)
+    return np.array(old), np.array(new), np.array(widths)
+
+
+def test_calibration_gives_the_wrongly_classified_label_a_trivial_threshold(setup):
+    _, calibration = setup
+    # About a fifth of the sunny calibration frames get few sunny votes (5 % at the brightest),
+    # far more than alpha_c of them: sunny's threshold is low, so sunny stays in the set.
+    assert calibration.thresholds[0] < 0.1
+    # The classifier is right on light and heavy rain frames: their thresholds are high.
+    assert calibration.thresholds[1] > 0.5 and calibration.thresholds[2] > 0.5
+    assert calibration.alpha_total == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize("sign", [0.0, 1.0, -1.0], ids=["clean", "brighter", "darker"])
+def test_conformal_interval_keeps_coverage_where_the_old_interval_does_not(setup, sign):
+    smooth, calibration = setup
+    eps = 0.25
+    images, _, stiffness = make_frames(100, seed=2)
+    seen = shift(images, eps, sign) if sign else images
+    old, new, widths = coverage(smooth, calibration, seen, stiffness, eps)
+    # 300 frames at a guaranteed miss rate <= alpha_total = 1 %: more than 9 misses has
+    # probability < 0.002 if the guarantee holds.
+    assert binom.sf(9, 300, calibration.alpha_total) < 0.002
+    assert (~new).sum() <= 9
+    # The old interval claims 1 - alpha = 0.999 but only under the standing assumption; the
+    # classifier is confidently wrong on the bright sunny frames and it misses them (at a
+    # true miss rate of 0.001, 5 or more misses in 300 has probability < 1e-6).
+    assert (~old).sum() >= 5
+    assert (~old).sum() > (~new).sum()
+    # Not the envelope everywhere: the conformal interval stays informative.
+    envelope = load_conditions().envelope(PRESET)
+    assert widths.mean() < 0.9 * (envelope[1] - envelope[0])
+
+
+def test_lower_conformal_quantile_is_the_floor_rank_order_statistic():
+    scores = np.arange(1, 200) / 200.0  # 199 scores
+    # floor(0.01 * 200) = 2: the second smallest
+    assert lower_conformal_quantile(scores[::-1], 0.01) == pytest.approx(2 / 200)
+    # floor(0.004 * 200) = 0: too few scores for this alpha_c, the trivial threshold
+    assert lower_conformal_quantile(scores, 0.004) == 0.0
+
+
+def test_threshold_shrinks_with_the_budget_by_the_lipschitz_bound():
+    cal = RobustConformalCalibration({0: 0.9, 1: 0.5}, {0: 500, 1: 500}, 2, sigma=0.5, n=1000)
+    assert cal.threshold(0, 0.0) == pytest.approx(0.9)
+    assert cal.threshold(1, 0.5) == pytest.approx(0.158655, abs=1e-5)  # Phi(0 - 1)
+    assert cal.threshold(0, 0.25) < cal.threshold(0, 0.0)
+    # all votes to label 0: label 1's upper bound is tiny, so the set is {0}
+    assert cal.label_set([1000, 0], 0.0) == (0,)
+    assert cal.label_set([600, 400], 0.5) == (0, 1)
+    with pytest.raises(CertificationError, match="counts"):
+        cal.label_set([1, 2, 3], 0.0)
+
+
+def test_cp_lower_bound_holds_for_a_known_probability():
+    rng = np.random.default_rng(0)
+    k = rng.binomial(200, 0.3, size=20_000)
+    assert np.mean(cp_lower(k, 200, 0.01) > 0.3) <= 0.01 + 0.003
+
+
+def test_label_set_hull_is_the_contiguous_friction_range():
+    table = load_conditions()
+    cal = RobustConformalCalibration({0: 0.0, 1: 0.99, 2: 0.9}, {0: 1, 1: 1, 2: 1}, 3,
+                                     sigma=0.25, n=1000)
+    ci = conformal_interval(np.array([0, 0, 1000]), cal, table, PRESET, 0.0)
+    assert ci.label_set == ("sunny", "heavy_rain") or set(ci.label_set) == {
+        table.preset(PRESET).labels[0], table.preset(PRESET).labels[2]}
+    assert ci.labels == tuple(table.preset(PRESET).labels)  # sunny..heavy rain
+    assert ci.interval == table.envelope(PRESET)

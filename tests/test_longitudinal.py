@@ -1,0 +1,152 @@
+"""Longitudinal motion (issue 7, item 5): speed follows the certified command, bounded."""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+from pydrake.common.value import AbstractValue
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder, LeafSystem
+from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
+
+from drake_cert.errors import ConfigError
+from systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
+
+A_DEC, A_ACC = 4.0, 2.0
+TOL = 1e-6  # integration roundoff on the bounds
+
+
+@dataclasses.dataclass(frozen=True)
+class FakeDecision:
+    """The fields of systems.certified_interval.Decision that LongitudinalMotion reads."""
+
+    time_s: float
+    position_m: float
+    speed_command_mps: float
+    design_index: int
+
+
+class ScriptedDecisions(LeafSystem):
+    """Outputs the latest of a list of decisions whose time_s <= t (a stand-in for the
+    certified-interval block)."""
+
+    def __init__(self, decisions):
+        super().__init__()
+        self._decisions = sorted(decisions, key=lambda d: d.time_s)
+        self.DeclareAbstractOutputPort("decision", lambda: AbstractValue.Make(object()),
+                                       self._calc, prerequisites_of_calc={self.time_ticket()})
+
+    def _calc(self, context, output):
+        now = [d for d in self._decisions if d.time_s <= context.get_time()]
+        output.set_value(now[-1] if now else None)
+
+
+def _drive(decisions, *, initial_speed, t_final, initial_design=0):
+    builder = DiagramBuilder()
+    motion = builder.AddSystem(LongitudinalMotion(initial_speed_mps=initial_speed,
+                                                  initial_design_index=initial_design))
+    source = builder.AddSystem(ScriptedDecisions(decisions))
+    builder.Connect(source.get_output_port(), motion.GetInputPort("decision"))
+    logs = {name: LogVectorOutput(motion.GetOutputPort(name), builder, 0.01)
+            for name in ("arc_length_m", "speed_mps", "design_index", "speed_reference_mps")}
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.get_mutable_integrator().set_fixed_step_mode(True)
+    simulator.get_mutable_integrator().set_maximum_step_size(1e-3)
+    simulator.AdvanceTo(t_final)
+    ctx = simulator.get_context()
+    data = {k: v.FindLog(ctx).data()[0] for k, v in logs.items()}
+    data["t"] = logs["speed_mps"].FindLog(ctx).sample_times()
+    return motion, data
+
+
+def _accelerations(data):
+    return np.diff(data["speed_mps"]) / np.diff(data["t"])
+
+
+def test_the_command_of_a_slower_point_ahead_is_reached_before_the_car_gets_there():
+    p, slow = 60.0, 10.0
+    _, d = _drive([FakeDecision(0.05, p, slow, 1)], initial_speed=20.0, t_final=6.0)
+    x, v = d["arc_length_m"], d["speed_mps"]
+    assert x[-1] > p + 5.0
+    # reached (to 1 cm/s) before p, by the braking margin's end, and held there
+    assert np.all(v[x >= p - 1.0] <= slow + 0.01)
+    assert v[0] == pytest.approx(20.0)
+    acc = _accelerations(d)
+    assert acc.min() >= -A_DEC - TOL and acc.max() <= A_ACC + TOL
+    # the design switches where the car reaches the entry, not before
+    assert np.all(d["design_index"][x < p - 0.3] == 0)
+    assert np.all(d["design_index"][x > p + 0.3] == 1)
+
+
+def test_a_late_entry_brakes_at_the_deceleration_bound_and_never_beyond():
+    _, d = _drive([FakeDecision(0.05, 20.0, 5.0, 0)], initial_speed=20.0, t_final=4.0)
+    acc = _accelerations(d)
+    assert acc.min() == pytest.approx(-A_DEC, abs=1e-6)  # saturated
+    assert acc.min() >= -A_DEC - TOL
+
+
+def test_a_faster_command_accelerates_at_most_at_the_acceleration_bound():
+    _, d = _drive([FakeDecision(0.05, 5.0, 15.0, 2)], initial_speed=8.0, t_final=8.0)
+    acc = _accelerations(d)
+    assert acc.max() == pytest.approx(A_ACC, abs=1e-6)
+    assert acc.max() <= A_ACC + TOL
+    assert d["speed_mps"][-1] == pytest.approx(15.0, abs=0.01)
+    assert d["speed_reference_mps"][-1] == 15.0
+
+
+def test_a_stop_command_brings_the_car_to_rest_before_the_point_and_speed_stays_nonnegative():
+    p = 50.0
+    _, d = _drive([FakeDecision(0.05, p, 0.0, 3)], initial_speed=15.0, t_final=10.0)
+    x, v = d["arc_length_m"], d["speed_mps"]
+    assert v[-1] == 0.0 and v.min() >= 0.0
+    assert x[-1] < p  # stopped before the point
+    assert np.all(v[-100:] == 0.0)  # at rest for the last second, not creeping
+    assert _accelerations(d).min() >= -A_DEC - TOL
+
+
+def test_a_command_below_the_stop_speed_means_stop():
+    _, d = _drive([FakeDecision(0.05, 30.0, 3.0, 0)], initial_speed=10.0, t_final=10.0)
+    assert d["speed_mps"][-1] == 0.0 and d["arc_length_m"][-1] < 30.0
+
+
+def test_a_newer_decision_supersedes_the_entries_at_or_beyond_its_position():
+    prof = SpeedProfile(((-math.inf, 20.0, 0),))
+    prof = prof.with_decision(40.0, 12.0, 1, 0.1, 0.0)
+    prof = prof.with_decision(45.0, 12.0, 1, 0.2, 1.0)  # same command: not added
+    prof = prof.with_decision(50.0, 10.0, 2, 0.3, 2.0)
+    assert [e[0] for e in prof.entries] == [-math.inf, 40.0, 50.0]
+    prof = prof.with_decision(42.0, 15.0, 3, 0.4, 3.0)  # dwell-delayed: from its look point
+    assert prof.entries == ((-math.inf, 20.0, 0), (40.0, 12.0, 1), (42.0, 15.0, 3))
+    prof = prof.with_decision(60.0, 15.0, 3, 0.5, 41.0)  # the car passed 40: it stays in force
+    assert prof.entries == ((40.0, 12.0, 1), (42.0, 15.0, 3))
+    assert prof.in_force(41.0) == (12.0, 1) and prof.in_force(43.0) == (15.0, 3)
+
+
+def test_speed_reference_is_the_braking_envelope_with_margin():
+    entries = ((-math.inf, 20.0, 0), (100.0, 10.0, 1))
+    v, slope = speed_reference(entries, 80.0, decel_mps2=3.6, margin_m=2.0)
+    assert v == pytest.approx(math.sqrt(100.0 + 2 * 3.6 * 18.0))
+    assert slope == pytest.approx(-3.6 / v)
+    assert speed_reference(entries, 98.5, decel_mps2=3.6, margin_m=2.0) == (10.0, 0.0)
+    assert speed_reference(entries, 0.0, decel_mps2=3.6, margin_m=2.0) == (20.0, 0.0)
+
+
+def test_the_decision_port_takes_a_constant_value_source_and_duplicates_are_ignored():
+    builder = DiagramBuilder()
+    motion = builder.AddSystem(LongitudinalMotion(initial_speed_mps=12.0))
+    src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(
+        FakeDecision(0.0, 30.0, 8.0, 4))))
+    builder.Connect(src.get_output_port(), motion.GetInputPort("decision"))
+    diagram = builder.Build()
+    simulator = Simulator(diagram)
+    simulator.AdvanceTo(1.0)  # ten ticks of the same decision: one entry
+    assert motion.profile(simulator.get_context()).entries[1:] == ((30.0, 8.0, 4),)
+
+
+def test_invalid_settings_are_config_errors():
+    with pytest.raises(ConfigError, match="max_decel_mps2"):
+        LongitudinalMotion(initial_speed_mps=10.0, max_decel_mps2=0.0)
+    with pytest.raises(ConfigError, match="initial_speed_mps"):
+        LongitudinalMotion(initial_speed_mps=-1.0)

@@ -1,0 +1,45 @@
+"""bfloat16 evaluation: the certificate is that of the bfloat16 model as evaluated."""
+
+import numpy as np
+import pytest
+import torch
+
+from drake_cert.certification.classifier import SmoothedClassifier
+from drake_cert.certification.sampler import Bfloat16Model, with_precision
+from drake_cert.errors import CertificationError
+from drake_cert.perception.models import SmallResNet
+
+
+@pytest.fixture(scope="module")
+def model():
+    torch.manual_seed(0)
+    return SmallResNet(3, width=8).eval()
+
+
+def test_bf16_certificate_counts_are_those_of_the_bf16_model(model):
+    x = torch.rand(3, 16, 16, generator=torch.Generator().manual_seed(1))
+    smooth = SmoothedClassifier(model, 3, 0.25, precision="bf16")
+    counts = smooth.sample_counts(x, 300, 100, torch.Generator().manual_seed(5))
+    # The same noise, drawn and added in float32, through the bf16 model by hand:
+    g = torch.Generator().manual_seed(5)
+    bf16 = Bfloat16Model(model).eval()
+    expected = np.zeros(3, dtype=np.int64)
+    with torch.inference_mode():
+        for _ in range(3):
+            z = torch.empty(100, 3, 16, 16).normal_(0.0, 0.25, generator=g) + x
+            expected += np.bincount(bf16(z).argmax(1).numpy(), minlength=3)
+    assert (counts == expected).all()
+
+
+def test_bf16_model_agrees_with_float32_on_most_noisy_frames(model):
+    z = torch.rand(200, 3, 16, 16, generator=torch.Generator().manual_seed(2))
+    with torch.inference_mode():
+        a, b = model(z), with_precision(model, "bf16")(z)
+    assert b.dtype == torch.float32
+    assert (a.argmax(1) == b.argmax(1)).float().mean() > 0.9
+    assert with_precision(model, "fp32") is model
+
+
+def test_unknown_precision_is_rejected(model):
+    with pytest.raises(CertificationError, match="precision"):
+        SmoothedClassifier(model, 3, 0.25, precision="fp8")

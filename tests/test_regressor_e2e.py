@@ -1,0 +1,65 @@
+"""The end-to-end stiffness regressor learns the stiffness inside a condition (issue 10, item 2).
+
+Tiny run (a few hundred 12x12 frames whose brightness tracks the stiffness, as in
+tests/test_attacks.py): the full regressor is trained for real by the command in the README;
+this checks the code path and that it learns more than the class means.
+"""
+
+import math
+
+import torch
+
+from drake_cert.certification.regressor import MedianSmoothedRegressor
+from drake_cert.config import load_conditions
+from drake_cert.perception.frameset import FrameSet
+from drake_cert.perception.models import load_model, model_path, save_model
+from drake_cert.perception.training import TrainConfig, train_regressor_end_to_end
+
+PRESET = "carla-like"
+
+
+def frames(count: int, seed: int) -> FrameSet:
+    table = load_conditions()
+    conds = table.preset_conditions(PRESET)
+    g = torch.Generator().manual_seed(seed)
+    labels = torch.arange(count) % len(conds)
+    lo = torch.tensor([conds[int(k)].stiffness_lo_n_per_rad for k in labels])
+    hi = torch.tensor([conds[int(k)].stiffness_hi_n_per_rad for k in labels])
+    stiffness = lo + torch.rand(count, generator=g) * (hi - lo)
+    t = (stiffness - 40_000) / 80_000
+    images = (0.15 + 0.7 * t.view(-1, 1, 1, 1) + 0.05 * torch.randn(count, 3, 12, 12,
+                                                                      generator=g)).clamp(0, 1)
+    return FrameSet(images, labels, stiffness.float(), list(table.preset(PRESET).labels),
+                    PRESET)
+
+
+def within_class_mse(fs: FrameSet) -> float:
+    """MSE of the best class-mean predictor (what a head predicting class means achieves)."""
+    err = 0.0
+    for k in range(3):
+        y = fs.stiffness_n_per_rad[fs.labels == k].double()
+        err += float(((y - y.mean()) ** 2).sum())
+    return err / len(fs)
+
+
+def test_end_to_end_regressor_beats_the_class_means_and_smooths(tmp_path):
+    train, test = frames(384, seed=0), frames(96, seed=1)
+    cfg = TrainConfig(epochs=6, width=8, batch_size=32, learning_rate=0.05, flip=False)
+    model, metrics = train_regressor_end_to_end(train, sigma=0.25, config=cfg, seed=0)
+    with torch.no_grad():
+        pred = model(test.images)
+    assert pred.shape == (96, 1)
+    mse = float(((pred.squeeze(1).double() - test.stiffness_n_per_rad.double()) ** 2).mean())
+    assert math.isfinite(metrics["train_mse_n_per_rad_sq"])
+    assert mse < 0.5 * within_class_mse(test)
+    smooth = MedianSmoothedRegressor(model, 0.25)
+    median, lower, upper = smooth.certify_interval(test.images[0], 0.25, 2000, 0.001, 500,
+                                                   seed=0)
+    assert lower <= median <= upper
+    # It saves and loads with the model files' code path (a one-output SmallResNet).
+    path = save_model(model, model_path(PRESET, "regress", 0.25, tmp_path),
+                      meta={"image_size": 12, "task": "regress", "kind": "end_to_end"})
+    loaded = load_model(PRESET, "regress", 0.25, tmp_path)
+    with torch.no_grad():
+        assert torch.allclose(loaded(test.images), pred)
+    assert path.exists()

@@ -1,0 +1,95 @@
+"""`drake-cert reproduce --quick`: the paper's tables from per-frame episodes, identical rows
+whatever the executor, every row recomputable alone."""
+
+import csv
+
+import pytest
+
+from drake_cert.cli import main
+from drake_cert.experiments.reproduce import (
+    CALIBRATION,
+    CELL,
+    FRAME_CHOICE,
+    ReproduceConfig,
+    recompute_frame,
+    seed_of,
+)
+from drake_cert.experiments.tables import COLUMNS
+
+QUICK_ARGS = ["reproduce", "--quick", "--no-plots"]
+
+
+@pytest.fixture(scope="module")
+def quick_local(tmp_path_factory):
+    out = tmp_path_factory.mktemp("local")
+    assert main([*QUICK_ARGS, "--out", str(out)]) == 0
+    return out
+
+
+def read_csv(path):
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
+    rows = read_csv(quick_local / "results.csv")
+    assert set(COLUMNS) <= set(rows[0])
+    presets = {r["preset"] for r in rows}
+    assert presets == {"carla-like", "rtk-like", "robotcar-like"}
+    tables = {r["table"] for r in rows}
+    assert {"f_clean", "f_sa", "f_ea", "g_clean", "g_sa", "g_ea", "f_reg_clean", "h_sa",
+            "h_ea"} <= tables
+    for r in rows:
+        assert int(r["frames"]) == ReproduceConfig.quick().frames
+        assert 0.0 <= float(r["instability_pct"]) <= 100.0
+    md = (quick_local / "tables.md").read_text()
+    assert "(98.60)" in md  # the paper's clean accuracy on Carla, beside ours
+
+
+def test_the_certified_pipeline_never_leaves_the_lane_where_its_interval_covers(quick_local):
+    for r in read_csv(quick_local / "frames.csv"):
+        if r["pipeline"] == "g" and r["interval_covers"] == "True":
+            assert r["left_lane"] == "False", r
+
+
+def test_a_frame_recomputed_alone_gives_the_same_rows(quick_local):
+    config = ReproduceConfig.quick()
+    alone = recompute_frame(config, "rtk-like", 1)
+    full = [r for r in read_csv(quick_local / "frames.csv")
+            if r["preset"] == "rtk-like" and r["position"] == "1"]
+    assert len(alone) == len(full)
+    for a, f in zip(alone, full, strict=True):
+        assert f"{a['velocity_mps']:.6g}" == f["velocity_mps"]
+        assert f"{a['interval_lo']:.6g}" == f["interval_lo"]
+        assert str(a["left_lane"]) == f["left_lane"]
+        assert a["seed"] == f["seed"]
+
+
+def test_ray_with_two_workers_gives_identical_results(quick_local, tmp_path):
+    pytest.importorskip("ray")
+    assert main([*QUICK_ARGS, "--out", str(tmp_path), "--executor", "ray",
+                 "--workers", "2"]) == 0
+    assert (tmp_path / "results.csv").read_text() == (quick_local / "results.csv").read_text()
+    assert (tmp_path / "frames.csv").read_text() == (quick_local / "frames.csv").read_text()
+
+
+def test_no_two_streams_share_a_seed():
+    from systems import streams
+
+    config = ReproduceConfig.quick()
+    seeds = [seed_of(config, p, FRAME_CHOICE) for p in range(3)]
+    seeds += [seed_of(config, p, CALIBRATION, s) for p in range(3) for s in range(3)]
+    cells = [seed_of(config, p, CELL, c) for p in range(3) for c in range(len(config.cells()))]
+    seeds += cells
+    seeds += [streams.stream_seed(cell, purpose, frame) for cell in cells for frame in range(50)
+              for purpose in (streams.ATTACK, streams.CERTIFICATE)]
+    assert len(set(seeds)) == len(seeds)
+
+
+def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
+    assert main(["reproduce", "--quick", "--presets", "mars-like", "--out", str(tmp_path)]) == 2
+    assert "mars-like" in capsys.readouterr().err
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert main(["reproduce", "--quick", "--out", str(blocker / "sub")]) == 2
+    assert main(["reproduce", "--quick", "--frames", "0", "--out", str(tmp_path)]) == 2

@@ -1,0 +1,89 @@
+"""Scenarios: shipped files load, are commented, fit their preset and last 15-30 s; typos fail."""
+
+import re
+
+import pytest
+import yaml
+
+from drake_cert.config import load_conditions
+from drake_cert.errors import ConfigError
+from drake_cert.perception.models import model_path
+from systems.route import Route
+from systems.scenario import SHIPPED_SCENARIOS, load_scenario, scenario_path, scenarios_dir
+
+
+@pytest.mark.parametrize("name", SHIPPED_SCENARIOS)
+def test_shipped_scenario_loads_and_its_route_fits_its_preset(name):
+    scenario = load_scenario(name)
+    assert scenario.name == name
+    route = Route.build(scenario.route, load_conditions(), scenario.perception.preset,
+                        scenario.seed, scenario.transition_m)
+    assert route.total_length_m == pytest.approx(scenario.route_length_m)
+    assert len({seg.condition for seg in route.segments}) >= 2
+    for sigma in (scenario.perception.sigma, scenario.perception.base_sigma):
+        assert model_path(scenario.perception.preset, scenario.perception.task, sigma).exists()
+
+
+def test_at_least_four_scenarios_are_shipped_as_files():
+    assert len(SHIPPED_SCENARIOS) >= 4
+    assert sorted(p.stem for p in scenarios_dir().glob("*.yaml")) == sorted(SHIPPED_SCENARIOS)
+
+
+@pytest.mark.parametrize("name", SHIPPED_SCENARIOS)
+def test_every_field_of_a_shipped_scenario_carries_a_comment(name):
+    for number, line in enumerate(scenario_path(name).read_text().splitlines(), 1):
+        if re.match(r"^\s*(- )?[a-z_]+:", line):
+            assert "#" in line, f"{name}.yaml line {number} has no comment: {line!r}"
+
+
+def test_weather_change_in_curve_changes_condition_inside_the_curve():
+    route = load_scenario("weather_change_in_curve").route
+    changes = [i for i in range(1, len(route)) if route[i].condition != route[i - 1].condition]
+    assert any(route[i].curvature_per_m != 0 and
+               route[i].curvature_per_m == route[i - 1].curvature_per_m for i in changes)
+
+
+@pytest.mark.parametrize("name", SHIPPED_SCENARIOS)
+def test_a_drive_at_the_design_speeds_lasts_15_to_30_seconds(name, default_design_table):
+    """Estimate: each segment at its own label's design speed (length / speed)."""
+    scenario = load_scenario(name)
+    speed = {tuple(d.labels): d.speed_mps for d in default_design_table.designs}
+    seconds = sum(seg.length_m / speed[(seg.condition,)] for seg in scenario.route)
+    assert 15.0 <= seconds <= 30.0, f"{name}: {seconds:.1f} s"
+
+
+def _write_variant(tmp_path, edit) -> str:
+    data = yaml.safe_load(scenario_path("dry_to_snow").read_text())
+    edit(data)
+    path = tmp_path / "variant.yaml"
+    path.write_text(yaml.safe_dump(data))
+    return str(path)
+
+
+@pytest.mark.parametrize("edit, key", [
+    (lambda d: d.update(wheather="snow"), "wheather"),
+    (lambda d: d["camera"].update(shutter_s=0.01), "camera.shutter_s"),
+    (lambda d: d["route"][1].update(grip=0.5), "route[1].grip"),
+    (lambda d: d["simulator"].update(max_stepsize=0.1), "max_stepsize"),
+])
+def test_unknown_keys_raise_config_error_naming_the_key(tmp_path, edit, key):
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        load_scenario(_write_variant(tmp_path, edit))
+
+
+@pytest.mark.parametrize("edit, key", [
+    (lambda d: d["perception"].pop("n"), "perception.n"),
+    (lambda d: d["perception"].update(pipeline="robust"), "perception.pipeline"),
+    (lambda d: d["attack"].update(kind="fgsm"), "attack.kind"),
+    (lambda d: d["camera"].update(rate_hz=0.0), "camera.rate_hz"),
+    (lambda d: d["route"][0].update(curvature_per_m=0.1), "route[0].curvature_per_m"),
+    (lambda d: d.update(seed=-1), "seed"),
+])
+def test_missing_keys_and_bad_values_raise_config_error(tmp_path, edit, key):
+    with pytest.raises(ConfigError, match=re.escape(key)):
+        load_scenario(_write_variant(tmp_path, edit))
+
+
+def test_an_unknown_scenario_name_lists_the_shipped_ones():
+    with pytest.raises(ConfigError, match="dry_to_snow"):
+        load_scenario("no_such_scenario")
