@@ -308,7 +308,7 @@ def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
     missing = [f for f in sorted(fields) if f not in data and f not in optional]
     if missing:
         raise ConfigError(f"{where}: missing key {_join(path, missing[0])!r}")
-    for name in fields:
+    for name in fields & set(data):
         hint = hints[name]
         sub = data[name]
         if dataclasses.is_dataclass(hint):

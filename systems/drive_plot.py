@@ -38,13 +38,10 @@ def tape_bytes(results, path: str) -> bytes:
 def drive_figure_png(results) -> bytes:
     """Lateral offset (with the lane margin), speed (with the command) and the interval in
     force against the true stiffness, for each drive side by side."""
-    import matplotlib
+    from matplotlib.figure import Figure
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, axes = plt.subplots(3, len(results), figsize=(5.5 * len(results), 7.5), sharex="col",
-                             squeeze=False)
+    fig = Figure(figsize=(5.5 * len(results), 7.5))
+    axes = fig.subplots(3, len(results), sharex="col", squeeze=False)
     for j, r in enumerate(results):
         t, tape, s = r.tape.times_s, r.tape, r.summary
         ax = axes[0, j]
@@ -70,5 +67,4 @@ def drive_figure_png(results) -> bytes:
             a.grid(alpha=0.3)
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=100, bbox_inches="tight")
-    plt.close(fig)
     return buf.getvalue()

@@ -143,6 +143,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     ``perception.sigma``; the base pipeline runs the model at ``perception.base_sigma``
     (0: the plain f) and is attacked by PGD on that model.
     """
+    from drake_cert.certification.sampler import with_precision
     from drake_cert.perception.models import load_model
 
     scenario.validate("scenario")
@@ -156,7 +157,8 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma
-    model = load_model(p.preset, p.task, sigma)
+    # The attack and the certificate see the same model as evaluated (fp32 or bf16).
+    model = with_precision(load_model(p.preset, p.task, sigma), p.precision)
     labels = list(conditions.preset(p.preset).labels)
     period = 1.0 / cam.rate_hz
     v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)

@@ -77,9 +77,11 @@ class PerceptionSettings:
     calibration_n: int = 500  # regression: samples per calibration frame
     alpha_c: float = 0.01  # regression: conformal miscoverage
     alpha_m: float = 0.001  # regression: level of the calibration median interval
+    precision: str = "fp32"  # model arithmetic, "fp32" or "bf16" (attack and certificate alike)
 
     def validate(self, where: str) -> None:
         _one_of(self.task, TASKS, "perception.task", where)
+        _one_of(self.precision, ("fp32", "bf16"), "perception.precision", where)
         _one_of(self.pipeline, PIPELINES, "perception.pipeline", where)
         _positive(self.sigma, "perception.sigma", where)
         _non_negative(self.base_sigma, "perception.base_sigma", where)

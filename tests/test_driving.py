@@ -39,7 +39,7 @@ def snow_curve():
     route = [SegmentSpec(60.0, 0.0, "rain"), SegmentSpec(20.0, 0.0, "snow"),
              SegmentSpec(50.0, 1 / 50, "snow"), SegmentSpec(10.0, 0.0, "snow")]
     return dataclasses.replace(sc, route=route,
-                               camera=dataclasses.replace(sc.camera, rate_hz=5.0))
+                               camera=dataclasses.replace(sc.camera, rate_hz=5.0))  # as shipped
 
 
 def short(scenario, seconds):
@@ -83,7 +83,7 @@ def test_bad_frames_fall_back_to_the_envelope_never_to_a_nominal(setup, fault):
     result = drive_scenario(short(scenario, 2.0), **setup)
     envelope = setup["conditions"].envelope("robotcar-like")
     ticks = result.ticks
-    assert len(ticks.times_s) >= 15
+    assert len(ticks.times_s) >= 9  # 2 s at 5 Hz
     assert np.all(ticks.status == 1)
     assert np.allclose(ticks.interval_n_per_rad, envelope)
     table = preset_designs(setup["designs"], setup["conditions"], "robotcar-like")

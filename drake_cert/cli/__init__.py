@@ -37,6 +37,8 @@ HEAVY_IMPORTS = {
     "generate": ("numpy", "torch"),
     "train": ("numpy", "torch"),
     "certify": ("numpy", "torch"),
+    "drive": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
+    "reproduce": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
 }
 
 

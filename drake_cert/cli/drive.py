@@ -79,32 +79,28 @@ def _designs(args, vehicle, conditions, settings):
 
 def run(args) -> int:
     _check_outputs(args)
-    import dataclasses
 
     from drake_cert.config import load_conditions, load_settings, load_vehicle
-    from systems.driving import with_overrides
-    from systems.scenario import load_scenario
 
-    base_scenario = load_scenario(args.scenario)
-    if args.n is not None:
-        base_scenario = dataclasses.replace(
-            base_scenario, perception=dataclasses.replace(base_scenario.perception, n=args.n))
     pipelines = PIPELINES if args.compare else (args.pipeline,)
-    scenarios = [with_overrides(base_scenario, pipeline=p, attack=args.attack, eps=args.eps,
-                                seed=args.seed) for p in pipelines]
+    # Scenarios are rebuilt from these choices in each worker (Drake's SimulatorConfig inside a
+    # scenario does not pickle); loading one here first reports a bad scenario in one line.
+    choices = [dict(scenario=args.scenario, n=args.n, pipeline=p, attack=args.attack,
+                    eps=args.eps, seed=args.seed) for p in pipelines]
+    _scenario_for(**choices[0])
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = _designs(args, vehicle, conditions, settings)
     common = dict(vehicle=vehicle, settings=settings, conditions=conditions, designs=designs)
-    if len(scenarios) == 1:
-        results = [_drive_with_bar(scenarios[0], common, position=0)]
+    if len(choices) == 1:
+        results = [_drive_with_bar(choices[0], common, position=0)]
     else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(len(scenarios),
+        with ProcessPoolExecutor(len(choices),
                                  mp_context=multiprocessing.get_context("spawn")) as pool:
-            futures = [pool.submit(_drive_with_bar, sc, common, i)
-                       for i, sc in enumerate(scenarios)]
+            futures = [pool.submit(_drive_with_bar, c, common, i)
+                       for i, c in enumerate(choices)]
             results = [f.result() for f in futures]
     _write_outputs(args, results)
     if args.json:
@@ -115,11 +111,27 @@ def run(args) -> int:
     return 0
 
 
-def _drive_with_bar(scenario, common: dict, position: int):
+def _scenario_for(*, scenario, n, pipeline, attack, eps, seed):
+    """The scenario (shipped name or file) with the command line's choices applied."""
+    import dataclasses
+
+    from systems.driving import with_overrides
+    from systems.scenario import load_scenario
+
+    loaded = load_scenario(scenario)
+    if n is not None:
+        loaded = dataclasses.replace(loaded, perception=dataclasses.replace(loaded.perception,
+                                                                            n=n))
+    return with_overrides(loaded, pipeline=pipeline, attack=attack, eps=eps, seed=seed)
+
+
+def _drive_with_bar(choices: dict, common: dict, position: int):
     """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
     from tqdm import tqdm
 
     from systems.driving import drive_scenario
+
+    scenario = _scenario_for(**choices)
 
     horizon = scenario.route_length_m / 10.0  # a guess; the bar grows past it if needed
     with tqdm(total=round(horizon, 1), unit="sim s", file=sys.stderr, disable=None,
@@ -131,7 +143,7 @@ def _drive_with_bar(scenario, common: dict, position: int):
 def format_summaries(summaries: list[dict]) -> str:
     """A small side-by-side table of the drives."""
     keys = (("pipeline", "{}"), ("attack", "{}"), ("left_lane", "{}"),
-            ("peak_abs_e1_m", "{:.3f}"), ("time_left_lane_s", "{}"),
+            ("peak_abs_e1_m", "{:.3f}"), ("time_left_lane_s", "{:.2f}"),
             ("mean_speed_mps", "{:.2f}"), ("min_speed_mps", "{:.2f}"),
             ("distance_m", "{:.1f}"), ("interval_covers_true_fraction", "{:.3f}"),
             ("envelope_fraction", "{:.3f}"), ("design_switches", "{}"),

@@ -27,6 +27,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="estimation samples per certificate (default: 10000, 200 quick)")
     parser.add_argument("--eps", type=float, default=None,
                         help="L2 budget of the main tables (default: 0.25)")
+    parser.add_argument("--sigmas", type=float, nargs="+", default=None,
+                        help="noise levels of g and h (default: 0.25 0.5 1.0)")
+    parser.add_argument("--sweep-eps", type=float, nargs="+", default=None,
+                        help="budgets of the sweep (default: 0 0.25 0.5 1 1.5 2; --quick: eps)")
+    parser.add_argument("--calibration-per-class", type=int, default=None,
+                        help="conformal calibration frames per label (default: 100, quick 6)")
+    parser.add_argument("--calibration-n", type=int, default=None,
+                        help="samples per calibration frame (default: 1000, quick 100)")
     parser.add_argument("--no-regression", action="store_true",
                         help="skip the regression tables")
     parser.add_argument("--seed", type=int, default=0, help="root seed")
@@ -58,6 +66,14 @@ def build_config(args):
             changes["sweep_eps"] = (args.eps,)
     if args.no_regression:
         changes["regression"] = False
+    if args.sigmas:
+        changes["sigmas"] = tuple(args.sigmas)
+    if args.sweep_eps:
+        changes["sweep_eps"] = tuple(args.sweep_eps)
+    if args.calibration_per_class is not None:
+        changes["calibration_per_class"] = args.calibration_per_class
+    if args.calibration_n is not None:
+        changes["calibration_n"] = args.calibration_n
     config = dataclasses.replace(config, **changes)
     config.validate()
     return config

@@ -45,23 +45,18 @@ def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], co
 
 
 def _png(fig) -> bytes:
-    import matplotlib.pyplot as plt
-
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
-    plt.close(fig)
     return buf.getvalue()
 
 
 def sweep_plot(summary: list[dict], config) -> bytes:
     """Share certified (g), velocity under EA and instability under SA against the budget."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     presets = list(config.presets)
-    fig, axes = plt.subplots(3, len(presets), figsize=(4.2 * len(presets), 8.5), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(presets), 8.5))
+    axes = fig.subplots(3, len(presets), squeeze=False)
     for j, p in enumerate(presets):
         for pipe, sigma, style in (("f", 0.0, "o--"), ("g", config.sweep_sigma, "s-")):
             def series(attack, metric, p=p, pipe=pipe, sigma=sigma):
@@ -89,13 +84,11 @@ def sweep_plot(summary: list[dict], config) -> bytes:
 
 def radius_plot(rows: list[dict], config) -> bytes:
     """Histogram of g's certified radius (run-time label range) at the observed frame."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    from matplotlib.figure import Figure
 
     presets = list(config.presets)
-    fig, axes = plt.subplots(1, len(presets), figsize=(4.2 * len(presets), 3.2), squeeze=False)
+    fig = Figure(figsize=(4.2 * len(presets), 3.2))
+    axes = fig.subplots(1, len(presets), squeeze=False)
     for j, p in enumerate(presets):
         for s in config.sigmas:
             radii = [r["certificate"] for r in rows if r["preset"] == p and r["pipeline"] == "g"

@@ -140,10 +140,45 @@ class FrameTask:
     position: int  # which of the preset's chosen frames (0 .. frames - 1)
 
 
+def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
+                     conditions) -> float:
+    """The h pipeline's conformal beta for (preset, sigma): Mondrian split conformal on
+    ``calibration_per_class`` frames per label of the calibration split (DESIGN 3), with its own
+    seed stream; infinite (the envelope) when too few frames for alpha_c."""
+    from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+    from drake_cert.perception.datasets import load_split
+
+    c = config
+    cal = load_split(preset, "calibration", conditions=conditions,
+                     frames_per_class=c.calibration_per_class)
+    calib = calibrate_conformal(
+        MedianSmoothedRegressor(model, sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
+        cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
+        alpha_m=c.alpha_m, alpha_c=c.alpha_c,
+        seed=seed_of(c, c.presets.index(preset), CALIBRATION,
+                     c.sigmas.index(sigma) if sigma in c.sigmas else 99))
+    return calib.beta
+
+
+def calibration_betas(config: ReproduceConfig) -> dict:
+    """Every (preset, sigma) beta of the run, computed once (before the frames are spread)."""
+    import torch
+
+    from drake_cert.perception.models import load_model
+
+    torch.set_num_threads(1)
+    if not config.regression:
+        return {}
+    conditions = load_conditions()
+    return {(p, s): calibration_beta(config, p, s, load_model(p, "regress", s), conditions)
+            for p in config.presets for s in config.sigmas}
+
+
 class FrameWorker:
     """Evaluates every cell on one frame. Loads designs, models and calibrations once."""
 
-    def __init__(self, config: ReproduceConfig):
+    def __init__(self, config: ReproduceConfig, betas: dict | None = None,
+                 designs: list | None = None):
         import torch
 
         from drake_cert.experiments.episodes import EpisodeRunner
@@ -153,10 +188,11 @@ class FrameWorker:
         self.config = config
         self.vehicle, self.settings = load_vehicle(), load_settings()
         self.conditions = load_conditions()
-        self.designs = synthesize_table(self.vehicle, self.conditions, self.settings)
+        self.designs = designs if designs is not None else synthesize_table(
+            self.vehicle, self.conditions, self.settings)
         self.episodes = EpisodeRunner(self.vehicle, self.settings)
         self._models: dict = {}
-        self._betas: dict = {}
+        self._betas: dict = dict(betas or {})
         self._frames: dict = {}
         self._blocks: dict = {}
 
@@ -180,22 +216,11 @@ class FrameWorker:
 
     def beta(self, preset: str, sigma: float) -> float:
         """Run-time conformal beta of the median-smoothed regressor (largest over labels)."""
-        from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
-        from drake_cert.perception.datasets import load_split
-
         key = (preset, sigma)
         if key not in self._betas:
-            c = self.config
-            cal = load_split(preset, "calibration", conditions=self.conditions).per_class(
-                c.calibration_per_class)
-            reg = MedianSmoothedRegressor(self.model(preset, "regress", sigma), sigma)
-            calib = calibrate_conformal(
-                reg, cal.images, cal.stiffness_n_per_rad.tolist(), cal.labels.tolist(),
-                n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
-                alpha_m=c.alpha_m, alpha_c=c.alpha_c,
-                seed=seed_of(c, c.presets.index(preset), CALIBRATION,
-                             c.sigmas.index(sigma) if sigma in c.sigmas else 99))
-            self._betas[key] = calib.beta
+            self._betas[key] = calibration_beta(self.config, preset, sigma,
+                                                self.model(preset, "regress", sigma),
+                                                self.conditions)
         return self._betas[key]
 
     # ------------------------------------------------------------------ one frame
@@ -307,7 +332,12 @@ def run_reproduction(config: ReproduceConfig, executor=None,
 
     config.validate()
     executor = executor or LocalExecutor()
-    results = executor.map(lambda: FrameWorker(config), tasks_for(config), progress)
+    from synthesis.table import synthesize_table
+
+    designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
+    betas = calibration_betas(config)
+    results = executor.map(lambda: FrameWorker(config, betas, designs), tasks_for(config),
+                           progress)
     return [row for rows in results for row in rows]
 
 
