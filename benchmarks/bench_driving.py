@@ -54,7 +54,7 @@ def main() -> None:
     base = dataclasses.replace(base, perception=dataclasses.replace(
         base.perception, n=args.n, n0=100), camera=dataclasses.replace(base.camera, rate_hz=10.0))
     rows = []
-    for name, pipeline in (("certified, n = %d" % args.n, "certified"),
+    for name, pipeline in ((f"certified, n = {args.n}", "certified"),
                            ("perception off (base f)", "base")):
         scenario = with_overrides(base, pipeline=pipeline, attack="none")
         summary, spent = timed_drive(scenario, setup, args.seconds)

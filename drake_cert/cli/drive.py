@@ -36,6 +36,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="seed of every random stream (default: the scenario's)")
     parser.add_argument("--n", type=int, default=None,
                         help="estimation samples per certificate (default: the scenario's)")
+    parser.add_argument("--duration", type=float, default=None, metavar="S",
+                        help="stop after S simulated seconds (default: the scenario's t_final_s;"
+                             " 0 there means: until the route's end)")
     parser.add_argument("--designs", metavar="FILE", default=None,
                         help="design table from `synthesize --out` (default: synthesize now)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
@@ -61,6 +64,8 @@ def _check_outputs(args) -> None:
         check_writable(path, option)
     if args.eps is not None and not (args.eps >= 0 and args.eps < float("inf")):
         raise ConfigError(f"--eps {args.eps!r} must be a finite number >= 0")
+    if args.duration is not None and not (0 < args.duration < float("inf")):
+        raise ConfigError(f"--duration {args.duration!r} must be a positive number of seconds")
     if args.n is not None and args.n <= 0:
         raise ConfigError(f"--n {args.n} must be a positive integer")
     if args.seed is not None and args.seed < 0:
@@ -86,7 +91,7 @@ def run(args) -> int:
     # Scenarios are rebuilt from these choices in each worker (Drake's SimulatorConfig inside a
     # scenario does not pickle); loading one here first reports a bad scenario in one line.
     choices = [dict(scenario=args.scenario, n=args.n, pipeline=p, attack=args.attack,
-                    eps=args.eps, seed=args.seed) for p in pipelines]
+                    eps=args.eps, seed=args.seed, duration=args.duration) for p in pipelines]
     _scenario_for(**choices[0])
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = _designs(args, vehicle, conditions, settings)
@@ -111,7 +116,7 @@ def run(args) -> int:
     return 0
 
 
-def _scenario_for(*, scenario, n, pipeline, attack, eps, seed):
+def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None):
     """The scenario (shipped name or file) with the command line's choices applied."""
     import dataclasses
 
@@ -122,6 +127,8 @@ def _scenario_for(*, scenario, n, pipeline, attack, eps, seed):
     if n is not None:
         loaded = dataclasses.replace(loaded, perception=dataclasses.replace(loaded.perception,
                                                                             n=n))
+    if duration is not None:
+        loaded = dataclasses.replace(loaded, t_final_s=float(duration))
     return with_overrides(loaded, pipeline=pipeline, attack=attack, eps=eps, seed=seed)
 
 
