@@ -47,7 +47,6 @@ from systems.switching_controller import SwitchingL1Controller
 
 OFF_ROAD_M = 5.0  # |e1| (m) at which a drive ends: the car has left its lane for good
 REST_LIMIT_S = 5.0  # a drive ends after the car has rested this long (a stop for good)
-CALIBRATION = 5  # stream purpose of the regression calibration (beside systems.streams')
 
 
 @dataclasses.dataclass
@@ -127,7 +126,7 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
         MedianSmoothedRegressor(model, p.sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
         cal.labels.tolist(), n=p.calibration_n, batch_size=min(p.batch_size, p.calibration_n),
         alpha_m=p.alpha_m, alpha_c=p.alpha_c,
-        seed=streams.stream_seed(scenario.seed, CALIBRATION))
+        seed=streams.stream_seed(scenario.seed, streams.CALIBRATION))
     return calib.beta
 
 

@@ -12,6 +12,7 @@ ROUTE = 1  # true stiffness of each segment (key: segment index)
 CAMERA = 2  # the rendered (or chosen) frame of each tick (key: tick)
 ATTACK = 3  # the attack's random start and noise draws at each tick (key: tick)
 CERTIFICATE = 4  # the smoothing noise of each tick's certificate (key: tick)
+CALIBRATION = 5  # the regression's conformal calibration before a drive (no key)
 
 
 def stream_seed(seed: int, purpose: int, *keys: int) -> int:
