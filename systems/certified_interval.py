@@ -31,6 +31,7 @@ from collections.abc import Sequence
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
+from drake_cert.certification.conformal import conformal_interval
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
@@ -116,6 +117,12 @@ class CertifiedInterval(LeafSystem):
         eps: L2 budget the run-time interval is certified against.
         mode: "certified" or "base"; task: "classify" or "regress".
         regression_beta: conformal beta (N/rad) of the regression interval.
+        conformal: a robust conformal calibration
+            (:func:`drake_cert.certification.conformal.calibrate_robust_conformal`): when given,
+            a certified classification interval is the robust conformal one (it holds the true
+            stiffness with probability >= 1 - alpha_total without assuming g is right on the
+            clean frame; DESIGN 3) instead of the safe-set interval; the design is that of its
+            contiguous label range.
         dwell_time_s: least time between design switches (s).
         rate_hz, offset_s: the update's rate and offset (default half a period).
         label_names: the classifier's label names (default: the preset's).
@@ -123,7 +130,8 @@ class CertifiedInterval(LeafSystem):
 
     def __init__(self, designs: Sequence[ControllerDesign], conditions: ConditionsTable,
                  preset: str, *, eps: float, mode: str = "certified", task: str = "classify",
-                 regression_beta: float = 0.0, dwell_time_s: float = 0.3, rate_hz: float = 10.0,
+                 regression_beta: float = 0.0, conformal=None, dwell_time_s: float = 0.3,
+                 rate_hz: float = 10.0,
                  offset_s: float | None = None, label_names: Sequence[str] | None = None):
         super().__init__()
         if mode not in ("certified", "base") or task not in ("classify", "regress"):
@@ -139,6 +147,7 @@ class CertifiedInterval(LeafSystem):
         self.conditions, self.preset = conditions, preset
         self.eps, self.mode, self.task = float(eps), mode, task
         self.beta = float(regression_beta)
+        self.conformal = conformal
         self.dwell_time_s = float(dwell_time_s)
         self.family = tuple(conditions.preset(preset).labels)
         self.label_names = tuple(label_names) if label_names is not None else self.family
@@ -201,6 +210,8 @@ class CertifiedInterval(LeafSystem):
                 index = self._by_labels.get((self.label_names[p.base_label],))
                 return (self.envelope_decision(p) if index is None
                         else self._decision(p, index, "base", 0.0))
+            if self.conformal is not None and p.certificate is not None:
+                return self._conformal_decision(p)
             if p.certificate is None or p.certificate.abstained:
                 return self.envelope_decision(p)
             rt = runtime_classification_interval(p.certificate, self.conditions, self.preset,
@@ -226,6 +237,15 @@ class CertifiedInterval(LeafSystem):
         if index is None or index == self.envelope_index:
             return self.envelope_decision(p)
         return self._decision(p, index, "certified", self.eps, interval)
+
+    def _conformal_decision(self, p: PerceptionResult) -> Decision:
+        """The robust conformal interval at budget eps from the certificate's own votes."""
+        ci = conformal_interval(p.certificate, self.conformal, self.conditions, self.preset,
+                                self.eps, self.label_names)
+        if tuple(ci.labels) == self.family:
+            return self.envelope_decision(p)
+        return self._decision(p, self._by_labels[tuple(ci.labels)], "certified", self.eps,
+                              ci.interval)
 
     def _narrowest_holding(self, interval: tuple[float, float]) -> int | None:
         """Narrowest design holding ``interval`` whose friction bound is sound for it."""

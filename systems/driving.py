@@ -130,6 +130,23 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
     return calib.beta
 
 
+def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable):
+    """The robust conformal calibration of the certified classifier (DESIGN 3): held-out
+    calibration frames of every label, each with its own noise stream, at the run-time n."""
+    from drake_cert.certification.classifier import SmoothedClassifier
+    from drake_cert.certification.conformal import calibrate_robust_conformal
+    from drake_cert.perception.datasets import load_split
+
+    p = scenario.perception
+    cal = load_split(p.preset, "calibration", conditions=conditions,
+                     frames_per_class=p.conformal_frames_per_class)
+    classifier = SmoothedClassifier(model, len(conditions.preset(p.preset).labels), p.sigma)
+    return calibrate_robust_conformal(classifier, cal.images, cal.labels.tolist(), n=p.n,
+                                      batch_size=p.batch_size,
+                                      root_seed=streams.stream_seed(scenario.seed,
+                                                                    streams.CALIBRATION))
+
+
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
                                     settings: Settings, conditions: ConditionsTable,
                                     designs: list[ControllerDesign],
@@ -163,6 +180,8 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)
     beta = _regression_beta(model, scenario, conditions) \
         if certified and p.task == "regress" else math.inf
+    conformal = _conformal_calibration(model, scenario, conditions) \
+        if certified and p.task == "classify" and p.interval == "conformal" else None
 
     b = DiagramBuilder()
     add = b.AddNamedSystem
@@ -187,7 +206,8 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         frame_size=cam.frame_size))
     interval = add("certified_interval", CertifiedInterval(
         table, conditions, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
-        regression_beta=beta, dwell_time_s=scenario.controller.dwell_time_s,
+        regression_beta=beta, conformal=conformal,
+        dwell_time_s=scenario.controller.dwell_time_s,
         rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
     controller = add("switching_l1_controller", SwitchingL1Controller(
         vehicle=vehicle, designs=table, settings=settings, initial_design_index=envelope,

@@ -78,15 +78,19 @@ class PerceptionSettings:
     alpha_c: float = 0.01  # regression: conformal miscoverage
     alpha_m: float = 0.001  # regression: level of the calibration median interval
     precision: str = "fp32"  # model arithmetic, "fp32" or "bf16" (attack and certificate alike)
+    interval: str = "safe_set"  # classification interval: "safe_set" (paper) or "conformal"
+    conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 124)
 
     def validate(self, where: str) -> None:
         _one_of(self.task, TASKS, "perception.task", where)
         _one_of(self.precision, ("fp32", "bf16"), "perception.precision", where)
+        _one_of(self.interval, ("safe_set", "conformal"), "perception.interval", where)
         _one_of(self.pipeline, PIPELINES, "perception.pipeline", where)
         _positive(self.sigma, "perception.sigma", where)
         _non_negative(self.base_sigma, "perception.base_sigma", where)
         _non_negative(self.eps, "perception.eps", where)
-        for key in ("n0", "n", "batch_size", "calibration_frames_per_class", "calibration_n"):
+        for key in ("n0", "n", "batch_size", "calibration_frames_per_class", "calibration_n",
+                    "conformal_frames_per_class"):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)} must be a "
                                   "positive integer")

@@ -36,6 +36,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="seed of every random stream (default: the scenario's)")
     parser.add_argument("--n", type=int, default=None,
                         help="estimation samples per certificate (default: the scenario's)")
+    parser.add_argument("--interval", choices=("safe_set", "conformal"), default=None,
+                        help="classification interval: safe_set (the paper's; assumes g right on "
+                             "the clean frame) or conformal (robust conformal, no such "
+                             "assumption; calibrates before the drive); default: the scenario's")
     parser.add_argument("--duration", type=float, default=None, metavar="S",
                         help="stop after S simulated seconds (default: the scenario's t_final_s;"
                              " 0 there means: until the route's end)")
@@ -91,7 +95,8 @@ def run(args) -> int:
     # Scenarios are rebuilt from these choices in each worker (Drake's SimulatorConfig inside a
     # scenario does not pickle); loading one here first reports a bad scenario in one line.
     choices = [dict(scenario=args.scenario, n=args.n, pipeline=p, attack=args.attack,
-                    eps=args.eps, seed=args.seed, duration=args.duration) for p in pipelines]
+                    eps=args.eps, seed=args.seed, duration=args.duration,
+                    interval=args.interval) for p in pipelines]
     _scenario_for(**choices[0])
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = _designs(args, vehicle, conditions, settings)
@@ -116,7 +121,7 @@ def run(args) -> int:
     return 0
 
 
-def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None):
+def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None, interval=None):
     """The scenario (shipped name or file) with the command line's choices applied."""
     import dataclasses
 
@@ -129,6 +134,9 @@ def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None):
                                                                             n=n))
     if duration is not None:
         loaded = dataclasses.replace(loaded, t_final_s=float(duration))
+    if interval is not None:
+        loaded = dataclasses.replace(loaded, perception=dataclasses.replace(loaded.perception,
+                                                                            interval=interval))
     return with_overrides(loaded, pipeline=pipeline, attack=attack, eps=eps, seed=seed)
 
 
