@@ -1,0 +1,48 @@
+"""`drake-cert drive` runs every shipped scenario, certified and base, under no attack, SA and
+EA (a short drive each), prints one JSON object with the documented keys, and answers bad
+input with one line and exit code 2."""
+
+import json
+
+import pytest
+
+from drake_cert.cli import main
+from systems.scenario import SHIPPED_SCENARIOS
+
+KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min_speed_mps",
+        "distance_m", "simulated_s", "wall_s", "interval_covers_true_fraction",
+        "envelope_fraction", "design_switches", "seed"}
+
+
+@pytest.fixture(scope="module")
+def designs(tmp_path_factory):
+    path = tmp_path_factory.mktemp("designs") / "designs.yaml"
+    assert main(["synthesize", "--out", str(path)]) == 0
+    return str(path)
+
+
+@pytest.mark.parametrize("scenario", SHIPPED_SCENARIOS)
+@pytest.mark.parametrize("pipeline", ["certified", "base"])
+@pytest.mark.parametrize("attack", ["none", "sa", "ea"])
+def test_every_shipped_scenario_drives_under_every_attack(designs, scenario, pipeline, attack,
+                                                          capsys):
+    code = main(["drive", "--scenario", scenario, "--pipeline", pipeline, "--attack", attack,
+                 "--duration", "0.5", "--designs", designs, "--json"])
+    assert code == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert KEYS <= set(summary)
+    assert summary["pipeline"] == pipeline and summary["attack"] == attack
+    assert not summary["left_lane"]
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--scenario", "mars"], "neither a file nor a shipped scenario"),
+    (["--plot", "x.txt"], "expected a .png"),
+    (["--eps", "-1"], "--eps"),
+    (["--duration", "0"], "--duration"),
+    (["--n", "0"], "--n"),
+])
+def test_bad_drive_input_is_one_line_and_exit_2(argv, message, capsys):
+    assert main(["drive", *argv]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and message in err[0]
