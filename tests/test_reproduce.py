@@ -93,3 +93,25 @@ def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
     blocker.write_text("x")
     assert main(["reproduce", "--quick", "--out", str(blocker / "sub")]) == 2
     assert main(["reproduce", "--quick", "--frames", "0", "--out", str(tmp_path)]) == 2
+
+
+def test_reproduce_runs_g_through_the_conformal_interval_when_asked():
+    """12 calibration frames per label are too few for alpha_c = 0.008 (124 needed): every
+    label is then in the conformal set, so every g interval is the envelope -- which the
+    safe-set interval of a confidently classified frame never is."""
+    import dataclasses
+
+    from drake_cert.config import load_conditions
+
+    config = dataclasses.replace(ReproduceConfig.quick(), presets=("carla-like",),
+                                 interval="conformal", conformal_per_class=12, conformal_n=100,
+                                 regression=False)
+    envelope = load_conditions().envelope("carla-like")
+    rows = [r for r in recompute_frame(config, "carla-like", 0) if r["pipeline"] == "g"]
+    assert rows
+    for r in rows:
+        assert (r["interval_lo"], r["interval_hi"]) == tuple(envelope), r
+        assert r["interval_lo"] <= r["stiffness_n_per_rad"] <= r["interval_hi"]
+    safe_set = recompute_frame(dataclasses.replace(config, interval="safe_set"), "carla-like", 0)
+    assert any((r["interval_lo"], r["interval_hi"]) != tuple(envelope)
+               for r in safe_set if r["pipeline"] == "g")

@@ -35,6 +35,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="conformal calibration frames per label (default: 100, quick 6)")
     parser.add_argument("--calibration-n", type=int, default=None,
                         help="samples per calibration frame (default: 1000, quick 100)")
+    parser.add_argument("--interval", choices=("safe_set", "conformal"), default="safe_set",
+                        help="g's run-time interval: the paper's safe-set interval, or the robust "
+                             "conformal one (DESIGN 3; calibrated before the run)")
+    parser.add_argument("--conformal-per-class", type=int, default=None,
+                        help="robust conformal calibration frames per label (default 150)")
     parser.add_argument("--no-regression", action="store_true",
                         help="skip the regression tables")
     parser.add_argument("--seed", type=int, default=0, help="root seed")
@@ -74,6 +79,9 @@ def build_config(args):
         changes["calibration_per_class"] = args.calibration_per_class
     if args.calibration_n is not None:
         changes["calibration_n"] = args.calibration_n
+    changes["interval"] = args.interval
+    if args.conformal_per_class is not None:
+        changes["conformal_per_class"] = args.conformal_per_class
     config = dataclasses.replace(config, **changes)
     config.validate()
     return config

@@ -42,7 +42,7 @@ ATTACK_KINDS = ("none", "sa", "ea")
 # Purposes of the seed streams (spawn-key entries; distinct by construction). A cell's
 # blocks draw their attack and certificate noise from SeedSequence([cell seed, purpose, frame])
 # (systems.streams), the cell seed being the root's child (preset, CELL, cell).
-FRAME_CHOICE, CALIBRATION, CELL = 0, 1, 2
+FRAME_CHOICE, CALIBRATION, CELL, CONFORMAL = 0, 1, 2, 3
 
 
 @dataclasses.dataclass(frozen=True)
@@ -66,6 +66,9 @@ class ReproduceConfig:
     calibration_n: int = 1000  # samples per calibration frame
     alpha_c: float = 0.01
     alpha_m: float = 0.001
+    interval: str = "safe_set"  # g's interval: "safe_set" (paper) or "conformal" (DESIGN 3)
+    conformal_per_class: int = 150  # robust conformal calibration frames per label (>= 124)
+    conformal_n: int = 500  # samples per conformal calibration frame
     seed: int = 0
 
     @staticmethod
@@ -94,6 +97,11 @@ class ReproduceConfig:
                 raise ConfigError(f"eps = {e!r} must be a finite number >= 0")
         if not 0 < self.alpha < 1:
             raise ConfigError(f"alpha = {self.alpha!r} must be in (0, 1)")
+        if self.interval not in ("safe_set", "conformal"):
+            raise ConfigError(f"interval {self.interval!r} is not 'safe_set' or 'conformal'")
+        for name in ("conformal_per_class", "conformal_n"):
+            if getattr(self, name) <= 0:
+                raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
 
@@ -174,11 +182,45 @@ def calibration_betas(config: ReproduceConfig) -> dict:
             for p in config.presets for s in config.sigmas}
 
 
+def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> dict:
+    """Robust conformal calibrations of g for every (preset, sigma) the run certifies with (or
+    those in ``only``), each on ``conformal_per_class`` held-out frames per label with its own
+    seed stream (the same for a pair whether computed alone or with the others)."""
+    import torch
+
+    from drake_cert.certification.classifier import SmoothedClassifier
+    from drake_cert.certification.conformal import calibrate_robust_conformal
+    from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import load_model
+
+    if config.interval != "conformal":
+        return {}
+    torch.set_num_threads(1)
+    conditions = load_conditions()
+    out = {}
+    sigmas = sorted({*config.sigmas, config.sweep_sigma})
+    for p_idx, preset in enumerate(config.presets):
+        if only is not None and not any(p == preset for p, _ in only):
+            continue
+        cal = load_split(preset, "calibration", conditions=conditions,
+                         frames_per_class=config.conformal_per_class)
+        for s_idx, sigma in enumerate(sigmas):
+            if only is not None and (preset, sigma) not in only:
+                continue
+            classifier = SmoothedClassifier(load_model(preset, "classify", sigma),
+                                            len(cal.label_names), sigma)
+            out[(preset, sigma)] = calibrate_robust_conformal(
+                classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
+                batch_size=min(config.batch_size, config.conformal_n),
+                root_seed=seed_of(config, p_idx, CONFORMAL, s_idx))
+    return out
+
+
 class FrameWorker:
     """Evaluates every cell on one frame. Loads designs, models and calibrations once."""
 
     def __init__(self, config: ReproduceConfig, betas: dict | None = None,
-                 designs: list | None = None):
+                 designs: list | None = None, conformal: dict | None = None):
         import torch
 
         from drake_cert.experiments.episodes import EpisodeRunner
@@ -195,6 +237,7 @@ class FrameWorker:
         self._betas: dict = dict(betas or {})
         self._frames: dict = {}
         self._blocks: dict = {}
+        self._conformal: dict = dict(conformal or {})
 
     # ------------------------------------------------------------------ loading (cached)
     def model(self, preset: str, task: str, sigma: float):
@@ -292,9 +335,15 @@ class FrameWorker:
             alpha=c.alpha, batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels,
             eps=eps)
         beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
+        conformal = None
+        if pipeline == "g" and c.interval == "conformal":
+            if (preset, sigma) not in self._conformal:
+                self._conformal.update(conformal_calibrations(c, only={(preset, sigma)}))
+            conformal = self._conformal[(preset, sigma)]
         interval = CertifiedInterval(preset_designs(self.designs, self.conditions, preset),
                                      self.conditions, preset, eps=eps, mode=mode, task=task,
-                                     regression_beta=beta, label_names=labels)
+                                     regression_beta=beta, conformal=conformal,
+                                     label_names=labels)
         self._blocks[key] = (attacker, perception, interval)
         return self._blocks[key]
 
@@ -336,8 +385,9 @@ def run_reproduction(config: ReproduceConfig, executor=None,
 
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
     betas = calibration_betas(config)
-    results = executor.map(lambda: FrameWorker(config, betas, designs), tasks_for(config),
-                           progress)
+    conformal = conformal_calibrations(config)
+    results = executor.map(lambda: FrameWorker(config, betas, designs, conformal),
+                           tasks_for(config), progress)
     return [row for rows in results for row in rows]
 
 
