@@ -129,6 +129,12 @@ class ReproduceConfig:
         return out
 
 
+def preset_key(preset: str) -> int:
+    """A preset's stable spawn-key entry: its position in the conditions table (not in the
+    run's preset list), so a preset gets the same frames and streams in any selection."""
+    return [p.name for p in load_conditions().presets].index(preset)
+
+
 def seed_of(config: ReproduceConfig, *key: int) -> int:
     """A 63-bit integer seed of the stream with spawn key ``key`` under the root seed."""
     ss = np.random.SeedSequence(entropy=config.seed, spawn_key=tuple(int(k) for k in key))
@@ -163,7 +169,7 @@ def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
         MedianSmoothedRegressor(model, sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
         cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
         alpha_m=c.alpha_m, alpha_c=c.alpha_c,
-        seed=seed_of(c, c.presets.index(preset), CALIBRATION,
+        seed=seed_of(c, preset_key(preset), CALIBRATION,
                      c.sigmas.index(sigma) if sigma in c.sigmas else 99))
     return calib.beta
 
@@ -199,7 +205,8 @@ def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> 
     conditions = load_conditions()
     out = {}
     sigmas = sorted({*config.sigmas, config.sweep_sigma})
-    for p_idx, preset in enumerate(config.presets):
+    for preset in config.presets:
+        p_idx = preset_key(preset)
         if only is not None and not any(p == preset for p, _ in only):
             continue
         cal = load_split(preset, "calibration", conditions=conditions,
@@ -253,7 +260,7 @@ class FrameWorker:
 
         if preset not in self._frames:
             test = load_split(preset, "test", conditions=self.conditions)
-            idx = frame_indices(self.config, self.config.presets.index(preset), test.labels)
+            idx = frame_indices(self.config, preset_key(preset), test.labels)
             self._frames[preset] = (test, idx)
         return self._frames[preset]
 
@@ -271,7 +278,7 @@ class FrameWorker:
         from systems.camera import CameraFrame
 
         c = self.config
-        p_idx = c.presets.index(task.preset)
+        p_idx = preset_key(task.preset)
         test, idx = self.frames(task.preset)
         i = int(idx[task.position])
         label = int(test.labels[i])
@@ -325,7 +332,7 @@ class FrameWorker:
         task = "regress" if pipeline in ("f_reg", "h") else "classify"
         mode = "certified" if pipeline in ("g", "h") else "base"
         model = self.model(preset, task, sigma)
-        seed = seed_of(c, c.presets.index(preset), CELL, cell_index)
+        seed = seed_of(c, preset_key(preset), CELL, cell_index)
         labels = list(self.conditions.preset(preset).labels)
         attacker = Attacker(kind, eps=eps, target="smoothed" if mode == "certified" else "base",
                             model=model, sigma=sigma, task=task, seed=seed,
