@@ -8,6 +8,8 @@ draws; different purposes never share a stream.
 
 import numpy as np
 
+from drake_cert.certification.seeds import seed_from_sequence
+
 ROUTE = 1  # true stiffness of each segment (key: segment index)
 CAMERA = 2  # the rendered (or chosen) frame of each tick (key: tick)
 ATTACK = 3  # the attack's random start and noise draws at each tick (key: tick)
@@ -17,8 +19,8 @@ CALIBRATION = 5  # the regression's conformal calibration before a drive (no key
 
 def stream_seed(seed: int, purpose: int, *keys: int) -> int:
     """A 63-bit integer seed for (seed, purpose, keys): for ``torch.Generator.manual_seed``."""
-    ss = np.random.SeedSequence([int(seed), int(purpose), *(int(k) for k in keys)])
-    return int(ss.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
+    return seed_from_sequence(np.random.SeedSequence([int(seed), int(purpose),
+                                                      *(int(k) for k in keys)]))
 
 
 def stream_rng(seed: int, purpose: int, *keys: int) -> np.random.Generator:

@@ -1,5 +1,7 @@
 """Small controller designs for the systems tests (no synthesis run needed)."""
 
+import dataclasses
+
 import numpy as np
 import scipy.linalg
 
@@ -24,3 +26,13 @@ def lqr_design(vehicle, stiffness_lo, stiffness_hi, speed_mps, filter_gain=200.0
                             friction_mu_lo=0.5, k_m=[float(x) for x in k_m],
                             gain_speed_max_mps=30.0, filter_gain=filter_gain,
                             speed_mps=speed_mps)
+
+
+@dataclasses.dataclass(frozen=True)
+class FakeDecision:
+    """The fields of systems.certified_interval.Decision that LongitudinalMotion reads."""
+
+    time_s: float
+    position_m: float
+    speed_command_mps: float
+    design_index: int

@@ -1,10 +1,10 @@
 """Longitudinal motion (issue 7, item 5): speed follows the certified command, bounded."""
 
-import dataclasses
 import math
 
 import numpy as np
 import pytest
+from design_fixtures import FakeDecision
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -15,16 +15,6 @@ from systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_referen
 
 A_DEC, A_ACC = 4.0, 2.0
 TOL = 1e-6  # integration roundoff on the bounds
-
-
-@dataclasses.dataclass(frozen=True)
-class FakeDecision:
-    """The fields of systems.certified_interval.Decision that LongitudinalMotion reads."""
-
-    time_s: float
-    position_m: float
-    speed_command_mps: float
-    design_index: int
 
 
 class ScriptedDecisions(LeafSystem):

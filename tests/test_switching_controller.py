@@ -1,10 +1,9 @@
 """The switching, speed-scheduled L1 controller (issue 7, item 6) and the speed-varying plants."""
 
-import dataclasses
 
 import numpy as np
 import pytest
-from design_fixtures import lqr_design
+from design_fixtures import FakeDecision, lqr_design
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -29,14 +28,6 @@ SETTINGS = load_settings()
 SPEED = 12.0
 DESIGNS = [lqr_design(CAR, 40_000.0, 60_000.0, SPEED),
            lqr_design(CAR, 25_000.0, 45_000.0, 10.0, labels=("wet",))]
-
-
-@dataclasses.dataclass(frozen=True)
-class FakeDecision:
-    time_s: float
-    position_m: float
-    speed_command_mps: float
-    design_index: int
 
 
 class CurvatureAlongRoad(LeafSystem):

@@ -44,7 +44,7 @@ def _check_seed(root_seed: int) -> int:
     return int(root_seed)
 
 
-def _seed_of(sequence: np.random.SeedSequence) -> int:
+def seed_from_sequence(sequence: np.random.SeedSequence) -> int:
     """A 63-bit integer seed (fits ``torch.Generator.manual_seed`` and numpy)."""
     return int(sequence.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
@@ -69,15 +69,16 @@ def streams(root_seed: int, frame_index: int, *, split: str = "test") -> dict[st
 
     Use them with ``torch.Generator().manual_seed(seed)`` or ``numpy.random.default_rng(seed)``.
     """
-    return {p: _seed_of(stream_sequence(root_seed, split, frame_index, p)) for p in PURPOSES}
+    return {p: seed_from_sequence(stream_sequence(root_seed, split, frame_index, p))
+            for p in PURPOSES}
 
 
 def stream_seed(root_seed: int, frame_index: int, purpose: str, *, split: str = "test") -> int:
     """The integer seed of one purpose of one frame (one entry of :func:`streams`)."""
-    return _seed_of(stream_sequence(root_seed, split, frame_index, purpose))
+    return seed_from_sequence(stream_sequence(root_seed, split, frame_index, purpose))
 
 
 def frame_choice_seed(root_seed: int) -> int:
     """The seed that chooses which frames an experiment uses (one per root seed)."""
     root = _check_seed(root_seed)
-    return _seed_of(np.random.SeedSequence(root, spawn_key=(_FRAME_CHOICE_KEY,)))
+    return seed_from_sequence(np.random.SeedSequence(root, spawn_key=(_FRAME_CHOICE_KEY,)))

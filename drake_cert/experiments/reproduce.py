@@ -137,8 +137,10 @@ def preset_key(preset: str) -> int:
 
 def seed_of(config: ReproduceConfig, *key: int) -> int:
     """A 63-bit integer seed of the stream with spawn key ``key`` under the root seed."""
-    ss = np.random.SeedSequence(entropy=config.seed, spawn_key=tuple(int(k) for k in key))
-    return int(ss.generate_state(1, dtype=np.uint64)[0] >> 1)
+    from drake_cert.certification.seeds import seed_from_sequence
+
+    return seed_from_sequence(np.random.SeedSequence(entropy=config.seed,
+                                                     spawn_key=tuple(int(k) for k in key)))
 
 
 def frame_indices(config: ReproduceConfig, preset_index: int, labels) -> np.ndarray:
