@@ -190,8 +190,13 @@ class ControllerSettings:
     projection_epsilon: float = 0.1  # epsilon of the projection operator's convex function
     bound_factor: float = 1.1  # parameter sets are this factor times the largest value
     # smallest road radius (m) the adaptation sets cover: the gradient law's bound on |sigma|
-    # is taken at curvature 1 / this (the default equals synthesis.design_radius_m)
-    min_radius_m: float = dataclasses.field(default=50.0, metadata={"optional": True})
+    # is taken at curvature 1 / this; default half the design radius, a margin of 2 on the
+    # largest curvature a design admits (systems.l1_law, "Projection bound")
+    min_radius_m: float = dataclasses.field(default=25.0, metadata={"optional": True})
+    # road preview of the curvature feedforward (DESIGN 4): u_ff is taken at the mean
+    # curvature over the travel window [t + ahead - window, t + ahead] (s); window 0: off
+    preview_ahead_s: float = dataclasses.field(default=0.4, metadata={"optional": True})
+    preview_window_s: float = dataclasses.field(default=0.4, metadata={"optional": True})
 
     def validate(self, where: str = "settings") -> None:
         if self.adaptation_law not in ("piecewise_constant", "gradient"):
@@ -201,6 +206,11 @@ class ControllerSettings:
         _require_positive(self.sample_period_s, "controller.sample_period_s", where)
         _require_positive(self.projection_epsilon, "controller.projection_epsilon", where)
         _require_positive(self.min_radius_m, "controller.min_radius_m", where)
+        for key in ("preview_ahead_s", "preview_window_s"):
+            value = getattr(self, key)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{where}: controller.{key} = {value!r} must be a finite "
+                                  "number >= 0 (s)")
         if self.bound_factor < 1.0:
             raise ConfigError(
                 f"{where}: controller.bound_factor = {self.bound_factor} must be >= 1")

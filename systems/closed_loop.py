@@ -4,6 +4,9 @@
     C, mu, V (ConstantVectorSource) ----|------------------------------->   |          |
                                         +------------------------------->   |          |
                                         state <------------------------------------------+
+With ``settings.controller.preview_window_s > 0`` a second TrajectorySource feeds the
+controller the road preview, the mean curvature ahead (``Road.preview_curvature_trajectory``;
+the curvature feedforward is taken at it, see :mod:`systems.l1_law`).
 Loggers (``LogVectorOutput``, one sample per tape period) record the plant state, the
 saturated steering and the curvature. ``simulate`` builds the diagram, sets the initial
 state, advances and returns a :class:`Tape` (Drake tutorial style). A simulator monitor
@@ -112,9 +115,12 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
     builder = DiagramBuilder()
     controller_class = L1AdaptiveControllerReference if reference_controller else \
         L1AdaptiveController
+    ctl = settings.controller
+    preview = ctl.preview_window_s > 0
     controller = builder.AddSystem(controller_class(
         vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps, law=law,
-        e2dot_from_yaw_rate=plant == "nonlinear"))  # eq. 2.45's e2dot does not jump (l1_law)
+        e2dot_from_yaw_rate=plant == "nonlinear",  # eq. 2.45's e2dot does not jump (l1_law)
+        curvature_preview=preview))
     if plant == "nonlinear":
         plant_sys = builder.AddSystem(NonlinearLateralPlant(vehicle))
     elif plant == "linear":
@@ -128,6 +134,12 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
         road.curvature_trajectory(speed_mps, t_final_s)))
     builder.Connect(curvature.get_output_port(), controller.GetInputPort("curvature_per_m"))
     builder.Connect(curvature.get_output_port(), plant_sys.GetInputPort("curvature_per_m"))
+    if preview:
+        ahead = builder.AddNamedSystem("road_preview_curvature", TrajectorySource(
+            road.preview_curvature_trajectory(speed_mps, t_final_s, ahead_s=ctl.preview_ahead_s,
+                                              window_s=ctl.preview_window_s)))
+        builder.Connect(ahead.get_output_port(),
+                        controller.GetInputPort("curvature_preview_per_m"))
     builder.Connect(plant_sys.GetOutputPort("state"), controller.GetInputPort("state"))
     builder.Connect(controller.GetOutputPort("steering_rad"), saturation.get_input_port())
     builder.Connect(saturation.get_output_port(), plant_sys.GetInputPort("steering_rad"))

@@ -34,28 +34,39 @@ def _affine_matrices(expressions, variables):
     return np.asarray(m, float), np.asarray(c, float)
 
 
-def gradient_law_system(p: L1Parameters) -> SymbolicVectorSystem:
-    """Continuous-time gradient-law controller: input [s, kappa], output u (C++-evaluated)."""
+def _curvature_inputs(preview: bool):
+    """``(inputs, kappa, kappa_ff)``: the curvature input variables (with the preview's)."""
+    kappa = sym.Variable("kappa")
+    if not preview:
+        return [kappa], kappa, None
+    kappa_ff = sym.Variable("kappa_ff")
+    return [kappa, kappa_ff], kappa, kappa_ff
+
+
+def gradient_law_system(p: L1Parameters, preview: bool = False) -> SymbolicVectorSystem:
+    """Continuous-time gradient-law controller: input [s, kappa(, kappa_ff)], output u (C++)."""
     z = sym.MakeVectorVariable(11, "z")
     s = sym.MakeVectorVariable(4, "s")
-    kappa = sym.Variable("kappa")
+    inputs, kappa, kappa_ff = _curvature_inputs(preview)
     _, _, _, _, u_ad = l1_law.unpack_gradient_state(z)
     with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
-        dynamics = l1_law.gradient_controller_derivatives(p, z, s, kappa)
-        output = [l1_law.steering_command(p, s, u_ad, kappa)]
-    return SymbolicVectorSystem(state=z, input=np.concatenate([s, [kappa]]), dynamics=dynamics,
+        dynamics = l1_law.gradient_controller_derivatives(p, z, s, kappa, kappa_ff)
+        output = [l1_law.steering_command(p, s, u_ad, kappa, kappa_ff)]
+    return SymbolicVectorSystem(state=z, input=np.concatenate([s, inputs]), dynamics=dynamics,
                                 output=output)
 
 
-def piecewise_constant_system(p: L1Parameters) -> AffineSystem:
-    """Discrete piecewise-constant-law controller at T_s: input [s, kappa], output u."""
+def piecewise_constant_system(p: L1Parameters, preview: bool = False) -> AffineSystem:
+    """Discrete piecewise-constant-law controller at T_s: input [s, kappa(, kappa_ff)],
+    output u."""
     z = sym.MakeVectorVariable(5, "z")
     s = sym.MakeVectorVariable(4, "s")
-    kappa = sym.Variable("kappa")
+    inputs, kappa, kappa_ff = _curvature_inputs(preview)
     with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
-        s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, z[:4], z[4], s, kappa)
-        command = l1_law.steering_command(p, s, z[4], kappa)
-    zu = np.concatenate([z, s, [kappa]])
+        s_hat_next, u_ad_next = l1_law.piecewise_constant_update(p, z[:4], z[4], s, kappa,
+                                                                 kappa_ff)
+        command = l1_law.steering_command(p, s, z[4], kappa, kappa_ff)
+    zu = np.concatenate([z, s, inputs])
     m, f0 = _affine_matrices(np.concatenate([s_hat_next, [u_ad_next]]), zu)
     c, y0 = _affine_matrices([command], zu)
     return AffineSystem(A=m[:, :5], B=m[:, 5:], f0=f0, C=c[:, :5], D=c[:, 5:], y0=y0,
@@ -70,11 +81,14 @@ class L1AdaptiveController(Diagram):
     takes settings.controller.adaptation_law. ``parameters`` holds the derived numbers.
     ``e2dot_from_yaw_rate`` (default True: a vehicle, the Fiala plant) says the measured e2dot
     jumps with the curvature; False for the linear plants (:func:`l1_law.l1_parameters`).
+    ``curvature_preview`` adds the input port ``curvature_preview_per_m`` (1/m): the
+    curvature feedforward u_ff is taken at it (the road ahead, averaged; see
+    :meth:`systems.road.Road.preview_curvature_trajectory`) instead of at ``curvature_per_m``.
     """
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
                  speed_mps: float, law: str | None = None,
-                 e2dot_from_yaw_rate: bool = True):
+                 e2dot_from_yaw_rate: bool = True, curvature_preview: bool = False):
         super().__init__()
         law = law or settings.controller.adaptation_law
         if law not in l1_law.LAWS:
@@ -82,18 +96,21 @@ class L1AdaptiveController(Diagram):
         if not speed_mps > 0:
             raise ConfigError(f"speed_mps = {speed_mps!r} must be positive")
         self.law = law
+        self.curvature_preview = bool(curvature_preview)
         self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps,
-                                                  e2dot_from_yaw_rate)
+                                                  e2dot_from_yaw_rate, self.curvature_preview)
         builder = DiagramBuilder()
         if law == "gradient":
-            core = gradient_law_system(self.parameters)
+            core = gradient_law_system(self.parameters, self.curvature_preview)
         else:
-            core = piecewise_constant_system(self.parameters)
+            core = piecewise_constant_system(self.parameters, self.curvature_preview)
         self._core = builder.AddNamedSystem(f"l1_{law}", core)
-        mux = builder.AddSystem(Multiplexer([4, 1]))
+        mux = builder.AddSystem(Multiplexer([4, 1, 1] if self.curvature_preview else [4, 1]))
         builder.Connect(mux.get_output_port(0), self._core.get_input_port(0))
         builder.ExportInput(mux.get_input_port(0), "state")
         builder.ExportInput(mux.get_input_port(1), "curvature_per_m")
+        if self.curvature_preview:
+            builder.ExportInput(mux.get_input_port(2), "curvature_preview_per_m")
         builder.ExportOutput(self._core.get_output_port(0), "steering_rad")
         builder.BuildInto(self)
         self.set_name("l1_adaptive_controller")

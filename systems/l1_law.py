@@ -19,11 +19,48 @@ error jumps by ``V dkappa`` (0.38 rad/s at V = 19, R = 50), the piecewise-consta
 by that over T_s, and on the Fiala plant the steering saturated at 0.5 rad for 0.2-3 s
 after a step from straight to R = 50 m (steady 0.07 rad). At constant kappa the laws are unchanged.
 
+Road preview (``controller.preview_ahead_s``, ``preview_window_s``; defaults 0.4 s, 0.4 s):
+u_ff is taken at the mean curvature kappa_p of the road the car covers in the next 0.4 s
+(:meth:`systems.road.Road.preview_curvature_trajectory`); the predictor is driven by that
+same u_ff and by ``g_hat V kappa`` at the curvature under the car. Without it a step from
+straight to R = 50 m asks the front tire, already at 85% of mu g on the arc, for the yaw
+moment of a step in yaw rate: the steering peaked at 1.4-7.6x its steady value (saturated at
+0.5 rad for snow) and the asphalt design at C_lo left its lane (0.899 m vs 0.85 m); with it,
+1.02-1.27x and at most 0.44 m. Why the certificate still covers the law that runs:
+- u_ff is a known input, in the command and in the predictor alike, so the prediction
+  error and the adaptation see only the uncertainty; the disturbance they must cancel keeps
+  its form ``sigma = (w - 1) u_ff + b_m^+ (g - g_hat) V kappa`` with u_ff at kappa_p, and
+  ``|kappa_p| <= max |kappa|`` (a mean), so the gradient law's set bounds the two terms
+  separately (:func:`l1_parameters`, ``curvature_preview``); the piecewise-constant law
+  uses no bound. A curvature step becomes a ramp of u_ff over the window, so sigma's rate
+  is bounded by ``|w - 1| |k_ff| V dkappa / window`` (without the preview it is impulsive,
+  which the transient bounds of the L1 theory exclude, and the gradient law then stiffened
+  at its projection boundary: 220 s wall for a 20 s step run, 4 s with the preview).
+- Conditions a and b of DESIGN 5.3 involve only (A_m, b_m, theta, w, k), not the road;
+  conditions c and d are steady states on an arc of constant curvature, where the window
+  lies on the arc and kappa_p = kappa: the equilibrium synthesis and verify compute is that
+  of the law that runs. No condition changes. Transients (a clothoid, a step) are, as
+  before, not certified but measured on the Fiala plant; the preview moves the turn-in
+  up to 0.4 s ahead of the step (peak offset on a step at most 0.44 m, all single-label
+  designs at C_lo, mid, C_hi; ``benchmarks/grip_limits.py`` for the other roads).
+
 Two adaptation laws: the continuous gradient law with Gamma and the projection operator
 (:func:`gradient_law`), and the piecewise-constant law sampled at T_s
 (:func:`piecewise_constant_update`), whose 4-vector estimate covers matched and unmatched
 directions; the filter receives its input-channel equivalent at DC
 (:func:`compensated_estimate`), which keeps the steady-state e1 at zero for any stiffness.
+
+Projection bound (``controller.min_radius_m``, default 25 m = half the design radius): the
+gradient law's set for sigma is taken at curvature ``1 / min_radius_m``, twice the largest
+curvature a design admits (conditions c and d are stated at ``design_radius_m``). A larger
+set still contains the true sigma, so the L1 argument is unchanged (no synthesis condition
+uses this bound; only the transient bound of the prediction error grows with the set's
+radius). Measured with the preview, Fiala plant, C_lo, 20 s: on a step to R = 50 m and on a
+40 m curve within grip the estimate peaks at 0.32-0.76 of the bound at R = 50 m (sunny,
+heavy rain, snow), never on it. On a 40 m curve at a 50 m design's certified speed (more
+than mu g: the car slides out) the estimate sits on a bound at R = 50 m while the tire
+saturates, and Radau3 took 88 000 steps for the first 4.2 s (snow); with the margin of 2 the
+run ends off the road after 9.5 s in 1 200 steps.
 
 Numerics: along the gradient law the projection keeps each estimate in its set only in
 continuous time; at the set's boundary its restoring rate grows like Gamma |y| f, so
@@ -82,12 +119,16 @@ class L1Parameters:
 
 
 def l1_parameters(vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                  speed_mps: float, e2dot_from_yaw_rate: bool = True) -> L1Parameters:
+                  speed_mps: float, e2dot_from_yaw_rate: bool = True,
+                  curvature_preview: bool = False) -> L1Parameters:
     """Controller numbers for ``design`` at speed V (DESIGN 4); sets are bound_factor x max.
 
     ``e2dot_from_yaw_rate``: the measured e2dot is ``r - V kappa`` and jumps with kappa (a
     vehicle; the Fiala plant). False for the linear plants, which integrate eq. 2.45's e2dot
     as a state (it does not jump); the predictor then ignores curvature changes.
+    ``curvature_preview``: u_ff is taken at a road-preview curvature that may differ from the
+    curvature under the car (both within ``1 / min_radius_m``), so sigma's two terms are
+    bounded separately.
     """
     ctl, syn = settings.controller, settings.synthesis
     c_hat = design.nominal_stiffness_n_per_rad
@@ -102,6 +143,11 @@ def l1_parameters(vehicle: VehicleParams, design: ControllerDesign, settings: Se
     largest_yaw_rate = speed_mps / ctl.min_radius_m
     sigmas = [matched_disturbance(vehicle, c, c_hat, speed_mps, design.k_m_array,
                                   largest_yaw_rate) for c in grid]
+    if curvature_preview:  # sigma = (w - 1) k_ff V kappa_ff + b_m^+ (g - g_hat) V kappa
+        k_ff = curvature_feedforward_gain(nom)
+        sigmas = [abs((c / c_hat - 1.0) * k_ff * largest_yaw_rate)
+                  + abs(sg - (c / c_hat - 1.0) * k_ff * largest_yaw_rate)
+                  for c, sg in zip(grid, sigmas, strict=True)]
     t = ctl.sample_period_s
     e = scipy.linalg.expm(nom.a_m * t)
     phi = np.linalg.solve(nom.a_m, e - np.eye(4))
@@ -153,9 +199,14 @@ def curvature_feedforward(p: L1Parameters, curvature):
     return p.k_ff * p.speed_mps * curvature
 
 
-def steering_command(p: L1Parameters, s, u_ad, curvature):
-    """``u = -k_m s + u_ad + u_ff`` (rad, before saturation)."""
-    return -gm.dot(p.k_m, s) + u_ad + curvature_feedforward(p, curvature)
+def steering_command(p: L1Parameters, s, u_ad, curvature, feedforward_curvature=None):
+    """``u = -k_m s + u_ad + u_ff`` (rad, before saturation).
+
+    ``u_ff`` is taken at ``feedforward_curvature`` (1/m; the road-preview curvature, see
+    :func:`systems.road.Road.preview_curvature_trajectory`), or at ``curvature`` when None.
+    """
+    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
+    return -gm.dot(p.k_m, s) + u_ad + curvature_feedforward(p, kappa_ff)
 
 
 def projection_operator(theta, y, theta_max: float, epsilon: float):
@@ -196,11 +247,16 @@ def adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s):
 
 
 def predictor_derivative(p: L1Parameters, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad,
-                         curvature):
-    """State predictor with the known inputs u_ff and g_hat psidot_des (DESIGN 4)."""
+                         curvature, feedforward_curvature=None):
+    """State predictor with the known inputs u_ff and g_hat psidot_des (DESIGN 4).
+
+    ``u_ff`` is the one the command applies (at ``feedforward_curvature``, the preview, when
+    given); ``g_hat psidot_des`` is the road as it is under the car (``curvature``).
+    """
+    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
     psidot = p.speed_mps * curvature
     eta = adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s)
-    return (gm.matvec(p.a_m, s_hat) + gm.scaled(p.b_m, eta + curvature_feedforward(p, curvature))
+    return (gm.matvec(p.a_m, s_hat) + gm.scaled(p.b_m, eta + curvature_feedforward(p, kappa_ff))
             + gm.scaled(p.g_hat, psidot))
 
 
@@ -226,7 +282,8 @@ def low_pass_filter_derivative(p: L1Parameters, eta_hat, reference=0.0):
     return -p.filter_gain * (eta_hat - p.k_g * reference)
 
 
-def gradient_controller_derivatives(p: L1Parameters, z, s, curvature):
+def gradient_controller_derivatives(p: L1Parameters, z, s, curvature,
+                                    feedforward_curvature=None):
     """Time derivative of the gradient-law controller state ``[q_hat, w, theta, sigma, u_ad]``.
 
     ``q_hat`` is the predictor in jump-free coordinates (:func:`predicted_measurement`):
@@ -235,7 +292,8 @@ def gradient_controller_derivatives(p: L1Parameters, z, s, curvature):
     q_hat, w_hat, theta_hat, sigma_hat, u_ad = unpack_gradient_state(z)
     s_hat = predicted_measurement(p, q_hat, curvature)
     s = np.asarray(s)
-    s_hat_dot = predictor_derivative(p, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad, curvature)
+    s_hat_dot = predictor_derivative(p, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad, curvature,
+                                     feedforward_curvature)
     w_dot, theta_dot, sigma_dot = gradient_law(p, s_hat - s, s, w_hat, theta_hat, sigma_hat,
                                                u_ad)
     u_ad_dot = low_pass_filter_derivative(p, adaptive_signal(w_hat, theta_hat, sigma_hat,
@@ -276,7 +334,8 @@ def compensated_estimate(p: L1Parameters, sigma_hat):
     return gm.dot(p.pc_output_inverse, sigma_hat)
 
 
-def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature):
+def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature,
+                              feedforward_curvature=None):
     """One sample of the piecewise-constant law: ``(s_hat, u_ad)`` for the next period.
 
     The predictor argument and result are held in the jump-free coordinates
@@ -289,14 +348,16 @@ def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature):
     (:func:`compensated_estimate`): the filter ``u_ad' = -k eta`` is solved exactly over
     T_s with eta held (the new u_ad is applied over [t_k, t_k + T_s)), and the predictor
     ``s_hat' = A_m s_hat + b_m (u_ad + u_ff) + sigma_hat + g_hat psidot_des`` is solved
-    exactly with its inputs held: ``s_hat(t_k+1) = e^{A_m T} s_hat + Phi(T)(...)``.
+    exactly with its inputs held: ``s_hat(t_k+1) = e^{A_m T} s_hat + Phi(T)(...)``; u_ff is
+    taken at ``feedforward_curvature`` (the road preview) when given, else at ``curvature``.
     """
+    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
     s_hat = predicted_measurement(p, s_hat, curvature)
     sigma_hat = piecewise_constant_estimate(p, s_hat - np.asarray(s))
     eta_matched = compensated_estimate(p, sigma_hat)
     decay = float(np.exp(-p.filter_gain * p.sample_period_s))
     u_ad_next = decay * u_ad - (1.0 - decay) * eta_matched
-    forcing = (gm.scaled(p.b_m, u_ad_next + curvature_feedforward(p, curvature)) + sigma_hat
+    forcing = (gm.scaled(p.b_m, u_ad_next + curvature_feedforward(p, kappa_ff)) + sigma_hat
                + gm.scaled(p.g_hat, p.speed_mps * curvature))
     s_hat_next = gm.matvec(p.pc_exp, s_hat) + gm.matvec(p.pc_phi, forcing)
     return predictor_memory(p, s_hat_next, curvature), u_ad_next

@@ -19,16 +19,19 @@ class L1AdaptiveControllerReference(LeafSystem):
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
                  speed_mps: float, law: str | None = None,
-                 e2dot_from_yaw_rate: bool = True):
+                 e2dot_from_yaw_rate: bool = True, curvature_preview: bool = False):
         super().__init__()
         self.law = law or settings.controller.adaptation_law
         if self.law not in l1_law.LAWS:
             raise ConfigError(f"unknown adaptation law {self.law!r}; expected one of "
                               f"{l1_law.LAWS}")
+        self.curvature_preview = bool(curvature_preview)
         self.parameters = l1_law.l1_parameters(vehicle, design, settings, speed_mps,
-                                                  e2dot_from_yaw_rate)
+                                                  e2dot_from_yaw_rate, self.curvature_preview)
         self._s = self.DeclareVectorInputPort("state", 4)  # s = [e1, e1dot, e2, e2dot]
         self._kappa = self.DeclareVectorInputPort("curvature_per_m", 1)  # 1/m
+        self._kappa_ff = (self.DeclareVectorInputPort("curvature_preview_per_m", 1)  # 1/m
+                          if self.curvature_preview else None)
         if self.law == "gradient":
             # [s_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad]
             self.DeclareContinuousState(11)
@@ -42,31 +45,35 @@ class L1AdaptiveControllerReference(LeafSystem):
             self.DeclareVectorOutputPort("steering_rad", 1, self._command_sampled)
 
     def _inputs(self, context):
-        return self._s.Eval(context), float(self._kappa.Eval(context)[0])
+        """(s, kappa, kappa_ff): kappa_ff None without the preview port (u_ff at kappa)."""
+        kappa_ff = None if self._kappa_ff is None else float(self._kappa_ff.Eval(context)[0])
+        return self._s.Eval(context), float(self._kappa.Eval(context)[0]), kappa_ff
 
     def DoCalcTimeDerivatives(self, context, derivatives):
         if self.law != "gradient":  # Drake asks every subsystem, also those without x_c
             return
-        s, kappa = self._inputs(context)
+        s, kappa, kappa_ff = self._inputs(context)
         z = context.get_continuous_state_vector().CopyToVector()
         derivatives.get_mutable_vector().SetFromVector(
-            l1_law.gradient_controller_derivatives(self.parameters, z, s, kappa).astype(float))
+            l1_law.gradient_controller_derivatives(self.parameters, z, s, kappa,
+                                                   kappa_ff).astype(float))
 
     def _sample(self, context, discrete_state):
-        s, kappa = self._inputs(context)
+        s, kappa, kappa_ff = self._inputs(context)
         z = context.get_discrete_state(self._z).CopyToVector()
-        s_hat, u_ad = l1_law.piecewise_constant_update(self.parameters, z[:4], z[4], s, kappa)
+        s_hat, u_ad = l1_law.piecewise_constant_update(self.parameters, z[:4], z[4], s, kappa,
+                                                       kappa_ff)
         discrete_state.get_mutable_vector(self._z).SetFromVector(np.append(s_hat, u_ad))
 
     def _command_gradient(self, context, output: BasicVector):
-        s, kappa = self._inputs(context)
+        s, kappa, kappa_ff = self._inputs(context)
         u_ad = context.get_continuous_state_vector().GetAtIndex(10)
-        output.SetAtIndex(0, l1_law.steering_command(self.parameters, s, u_ad, kappa))
+        output.SetAtIndex(0, l1_law.steering_command(self.parameters, s, u_ad, kappa, kappa_ff))
 
     def _command_sampled(self, context, output: BasicVector):
-        s, kappa = self._inputs(context)
+        s, kappa, kappa_ff = self._inputs(context)
         u_ad = context.get_discrete_state(self._z).GetAtIndex(4)
-        output.SetAtIndex(0, l1_law.steering_command(self.parameters, s, u_ad, kappa))
+        output.SetAtIndex(0, l1_law.steering_command(self.parameters, s, u_ad, kappa, kappa_ff))
 
     def initial_state(self, s0, curvature: float = 0.0) -> np.ndarray:
         """Predictor at s0, estimates at their centres (as the fast controller)."""

@@ -114,3 +114,49 @@ class Road:
         values = self.curvature_at(np.asarray(times) * speed_mps)
         return PiecewisePolynomial.FirstOrderHold(np.asarray(times),
                                                   values.reshape(1, -1))
+
+    def curvature_integral(self, arc_length_m) -> np.ndarray:
+        """``int_0^s kappa`` (rad) at the given arc lengths (m; kappa(s < 0) = kappa(0), so the
+        integral is negative-signed there); exact for the piecewise-linear profile."""
+        k = np.asarray(self.knots_m, float)
+        c = np.asarray(self.curvature_per_m, float)
+        at_knots = np.concatenate([[0.0], np.cumsum(0.5 * (c[1:] + c[:-1]) * np.diff(k))])
+        s = np.asarray(arc_length_m, float)
+        i = np.clip(np.searchsorted(k, s, side="right") - 1, 0, len(k) - 1)
+        ds = s - k[i]
+        kappa_s = self.curvature_at(s)
+        # from knot i to s the curvature is linear (constant before 0 and after the last knot)
+        return at_knots[i] + 0.5 * (c[i] + kappa_s) * ds
+
+    def preview_curvature_at(self, arc_length_m, ahead_m: float, window_m: float) -> np.ndarray:
+        """Mean curvature (1/m) over ``[s + ahead_m - window_m, s + ahead_m]`` (m): the road
+        preview the curvature feedforward may use (``window_m > 0``; ``ahead_m`` may be less
+        than ``window_m``, a window that straddles the car)."""
+        s = np.asarray(arc_length_m, float)
+        hi = s + ahead_m
+        return (self.curvature_integral(hi) - self.curvature_integral(hi - window_m)) / window_m
+
+    def preview_curvature_trajectory(self, speed_mps: float, t_final_s: float, *,
+                                     ahead_s: float, window_s: float,
+                                     subdivisions: int = 8) -> PiecewisePolynomial:
+        """:meth:`preview_curvature_at` as a first-order-hold trajectory of time (s) at speed V,
+        ahead and window in seconds of travel. The mean is piecewise quadratic with breaks
+        where a window end crosses a knot; each piece is sampled ``subdivisions`` times
+        (error <= max |kappa''| (V dt)^2 / 8, zero for piecewise-constant curvature)."""
+        if not speed_mps > 0:
+            raise ConfigError(f"road: speed_mps = {speed_mps!r} must be positive")
+        if not window_s > 0:
+            raise ConfigError(f"road: preview window_s = {window_s!r} must be positive")
+        knots_t = np.asarray(self.knots_m, float) / speed_mps
+        breaks = np.concatenate([[0.0, t_final_s], knots_t - ahead_s,
+                                 knots_t - ahead_s + window_s])
+        breaks = np.unique(breaks[(breaks >= 0.0) & (breaks <= t_final_s)])
+        if len(breaks) < 2:
+            breaks = np.array([0.0, max(t_final_s, 1e-6)])
+        pieces = [np.linspace(a, b, subdivisions + 1)[:-1] for a, b in zip(breaks[:-1], breaks[1:],
+                                                                            strict=True)]
+        times = np.unique(np.concatenate(pieces + [breaks[-1:]]))
+        times = times[np.concatenate([[True], np.diff(times) > 1e-9])]  # FOH needs distinct
+        values = self.preview_curvature_at(times * speed_mps, ahead_s * speed_mps,
+                                           window_s * speed_mps)
+        return PiecewisePolynomial.FirstOrderHold(times, values.reshape(1, -1))
