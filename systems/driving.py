@@ -8,6 +8,12 @@
     longitudinal --speed, design in force--> switching L1 controller --> Saturation --> plant
     plant (Fiala) <-- true C, mu, curvature (route), speed (longitudinal); state --> controller
 
+The controller receives the curvature under the car and, with
+``settings.controller.preview_window_s > 0`` (default), the road preview: the route's mean
+curvature over the distance the car covers in the preview window at its current speed
+(``RouteSource`` output ``curvature_preview_per_m``, input ``speed_mps``), at which the
+curvature feedforward is taken (:mod:`systems.l1_law`, "Road preview").
+
 Timing per camera tick k (period T, t_k = k T): the camera takes a frame at t_k, perception
 certifies it at t_k + T/4, the interval block decides at t_k + T/2 (perception latency T/2),
 the longitudinal block takes the decision into its speed/design profile at t_k + 3T/4. The
@@ -190,7 +196,10 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
         initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
         rate_hz=cam.rate_hz, offset_s=0.75 * period))
-    road = add("route", RouteSource(route))
+    ctl = settings.controller
+    preview = ctl.preview_window_s > 0
+    road = add("route", RouteSource(route, preview_ahead_s=ctl.preview_ahead_s,
+                                    preview_window_s=ctl.preview_window_s))
     camera = add("camera", CameraSource(route, conditions, p.preset, rate_hz=cam.rate_hz,
                                         look_ahead_m=cam.look_ahead_m,
                                         frame_size=cam.frame_size, seed=scenario.seed,
@@ -211,7 +220,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
     controller = add("switching_l1_controller", SwitchingL1Controller(
         vehicle=vehicle, designs=table, settings=settings, initial_design_index=envelope,
-        initial_speed_mps=v0))
+        initial_speed_mps=v0, curvature_preview=preview))
     limit = vehicle.steering_limit_rad
     saturation = add("steering_saturation", Saturation([-limit], [limit]))
     plant = add("plant", NonlinearLateralPlant(vehicle,
@@ -225,6 +234,10 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     b.Connect(interval.GetOutputPort("decision"), motion.GetInputPort("decision"))
     b.Connect(plant.GetOutputPort("state"), controller.GetInputPort("state"))
     b.Connect(road.GetOutputPort("curvature_per_m"), controller.GetInputPort("curvature_per_m"))
+    if preview:
+        b.Connect(motion.GetOutputPort("speed_mps"), road.GetInputPort("speed_mps"))
+        b.Connect(road.GetOutputPort("curvature_preview_per_m"),
+                  controller.GetInputPort("curvature_preview_per_m"))
     b.Connect(motion.GetOutputPort("speed_mps"), controller.GetInputPort("speed_mps"))
     b.Connect(motion.GetOutputPort("design_index"), controller.GetInputPort("design_index"))
     b.Connect(controller.GetOutputPort("steering_rad"), saturation.get_input_port())

@@ -69,6 +69,10 @@ class Route:
         self._stiffness = np.array([seg.stiffness_n_per_rad for seg in self.segments])
         self._friction = np.array([seg.friction_mu for seg in self.segments])
         self._knots, self._kappa = self._curvature_knots()
+        self._integral_at_knots = np.concatenate(  # int_0^knot kappa (rad), trapezoids exact
+            [[0.0], np.cumsum(0.5 * (self._kappa[1:] + self._kappa[:-1]) * np.diff(self._knots))])
+        self._knots_list, self._kappa_list = self._knots.tolist(), self._kappa.tolist()
+        self._integral_list = self._integral_at_knots.tolist()
 
     @staticmethod
     def build(specs: Sequence[SegmentSpec], conditions: ConditionsTable, preset: str,
@@ -140,6 +144,46 @@ class Route:
         """Curvature (1/m) at the arc lengths, with the clothoid ramps at boundaries."""
         return np.interp(s_m, self._knots, self._kappa)
 
+    def curvature_integral(self, s_m) -> np.ndarray:
+        """``int_0^s kappa`` (rad) at the arc lengths (m), exact for the piecewise-linear
+        curvature (constant before 0 and past the last ramp, so negative-signed for s < 0)."""
+        k, c = self._knots, self._kappa
+        s = np.asarray(s_m, dtype=float)
+        i = np.clip(np.searchsorted(k, s, side="right") - 1, 0, len(k) - 1)
+        # from knot i to s the curvature is linear (constant before 0 and after the last knot)
+        return self._integral_at_knots[i] + 0.5 * (c[i] + self.curvature_at(s)) * (s - k[i])
+
+    def preview_curvature_at(self, s_m, ahead_m, window_m) -> np.ndarray:
+        """Mean curvature (1/m) over ``[s + ahead_m - window_m, s + ahead_m]`` (m), from
+        :meth:`curvature_integral` (exact on segments and clothoid ramps; as
+        ``systems.road.Road.preview_curvature_at``). ``ahead_m``, ``window_m`` >= 0 may be
+        arrays (they scale with the speed); where ``window_m`` is 0 (the car at rest) the
+        mean is its limit, the curvature at ``s + ahead_m``."""
+        if np.ndim(s_m) == np.ndim(ahead_m) == np.ndim(window_m) == 0:  # one point: no numpy
+            hi, w = float(s_m) + float(ahead_m), float(window_m)
+            if w <= 1e-9:
+                return np.float64(self._integral_and_curvature(hi)[1])
+            return np.float64((self._integral_and_curvature(hi)[0]
+                               - self._integral_and_curvature(hi - w)[0]) / w)
+        s = np.asarray(s_m, dtype=float)
+        hi = s + np.asarray(ahead_m, dtype=float)
+        w = np.asarray(window_m, dtype=float)
+        wide = w > 1e-9
+        safe = np.where(wide, w, 1.0)
+        mean = (self.curvature_integral(hi) - self.curvature_integral(hi - w)) / safe
+        return np.where(wide, mean, self.curvature_at(hi))
+
+    def _integral_and_curvature(self, s: float) -> tuple[float, float]:
+        """``(int_0^s kappa, kappa(s))`` at one arc length, in plain Python (the per-step path
+        of :class:`RouteSource`; :meth:`curvature_integral` and :meth:`curvature_at` agree)."""
+        k, c = self._knots_list, self._kappa_list
+        i = min(max(bisect.bisect_right(k, s) - 1, 0), len(k) - 1)
+        if s < k[0] or i == len(k) - 1:  # constant before the first and after the last knot
+            kappa = c[i]
+        else:  # k[i] <= s < k[i + 1]
+            kappa = c[i] + (c[i + 1] - c[i]) * (s - k[i]) / (k[i + 1] - k[i])
+        return self._integral_list[i] + 0.5 * (c[i] + kappa) * (s - k[i]), kappa
+
     def stiffness_at(self, s_m) -> np.ndarray:
         """True cornering stiffness per tire (N/rad) of the segment at each arc length."""
         return self._stiffness[self.segment_index_at(s_m)]
@@ -172,19 +216,42 @@ class RouteSource(LeafSystem):
     with the clothoid ramps), ``stiffness_n_per_rad`` (1, N/rad, the true cornering stiffness
     per tire of the segment the car is on, for the plant), ``friction_mu`` (1) and
     ``segment_index`` (1) of that segment.
+
+    Road preview (``preview_window_s > 0``; settings ``controller.preview_ahead_s``,
+    ``preview_window_s``): a second input ``speed_mps`` (1, m/s, the car's current speed V)
+    and the output ``curvature_preview_per_m`` (1, 1/m), the mean curvature over
+    ``[s + V ahead_s - V window_s, s + V ahead_s]`` (:meth:`Route.preview_curvature_at`): the
+    road the car covers in the window at its current speed, for the curvature feedforward
+    (:mod:`systems.l1_law`, "Road preview"). At V = 0 it is the curvature under the car.
     """
 
-    def __init__(self, route: Route):
+    def __init__(self, route: Route, *, preview_ahead_s: float = 0.0,
+                 preview_window_s: float = 0.0):
         super().__init__()
+        for name, value in (("preview_ahead_s", preview_ahead_s),
+                            ("preview_window_s", preview_window_s)):
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"route source: {name} = {value!r} must be a finite number "
+                                  ">= 0 (s)")
         self.route = route
+        self.preview_ahead_s = float(preview_ahead_s)
+        self.preview_window_s = float(preview_window_s)
         self._s = self.DeclareVectorInputPort("arc_length_m", 1)
         self.DeclareVectorOutputPort("curvature_per_m", 1, self._calc_curvature)
         self.DeclareVectorOutputPort("stiffness_n_per_rad", 1, self._calc_stiffness)
         self.DeclareVectorOutputPort("friction_mu", 1, self._calc_friction)
         self.DeclareVectorOutputPort("segment_index", 1, self._calc_index)
+        if self.preview_window_s > 0:
+            self._speed = self.DeclareVectorInputPort("speed_mps", 1)
+            self.DeclareVectorOutputPort("curvature_preview_per_m", 1, self._calc_preview)
 
     def _arc(self, context) -> float:
         return float(self._s.Eval(context)[0])
+
+    def _calc_preview(self, context, output: BasicVector) -> None:
+        v = max(float(self._speed.Eval(context)[0]), 0.0)
+        output.SetAtIndex(0, float(self.route.preview_curvature_at(
+            self._arc(context), v * self.preview_ahead_s, v * self.preview_window_s)))
 
     def _calc_curvature(self, context, output: BasicVector) -> None:
         output.SetAtIndex(0, float(self.route.curvature_at(self._arc(context))))

@@ -2,7 +2,12 @@
 
 Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
               ``curvature_per_m`` kappa (1/m), ``speed_mps`` V (m/s),
-              ``design_index`` (index into ``designs``; a float holding an integer).
+              ``design_index`` (index into ``designs``; a float holding an integer);
+              with ``curvature_preview=True`` also ``curvature_preview_per_m`` kappa_p (1/m),
+              the road preview (``systems.route.RouteSource``): the feedforward u_ff, in the
+              command and in the predictor, is taken at kappa_p instead of kappa, while the
+              predictor's ``g_hat V kappa`` and its jump-free coordinates keep the curvature
+              under the car (``systems.l1_law``, "Road preview").
 Output ports: ``steering_rad`` u (rad, UNSATURATED, as :mod:`systems.l1_controller`),
               ``active_design_index`` the design in use, ``scheduled_speed_mps`` the grid
               speed whose parameters are in use (m/s).
@@ -37,10 +42,11 @@ speed grid point within a design changes the parameters only (gain scheduling).
 
 Speed: ``fast=True`` (default) evaluates the law through its affine matrices: for each
 (design, grid point) ``piecewise_constant_update`` and ``steering_command`` are evaluated at
-the unit vectors of [s_hat, u_ad, s, kappa] (both are affine in them, exactly), giving one
-matrix-vector product per sample. ``fast=False`` calls the law's functions at each sample,
-the readable reference; tests check both agree. Both are Python (a few tens of us per call):
-the parameters are scheduled at run time, which Drake's C++ ``AffineSystem`` cannot do.
+the unit vectors of [s_hat, u_ad, s, kappa (, kappa_p)] (both are affine in them, exactly),
+giving one matrix-vector product per sample. ``fast=False`` calls the law's functions at
+each sample, the readable reference; tests check both agree. Both are Python (a few tens of
+us per call): the parameters are scheduled at run time, which Drake's C++ ``AffineSystem``
+cannot do.
 """
 
 import dataclasses
@@ -66,12 +72,13 @@ class ScheduledLaw:
     """The law at one (design, grid speed): parameters and their affine matrices.
 
     ``next = update @ [s_hat, u_ad, s, kappa, 1]`` gives (s_hat, u_ad) at the next sample,
-    ``u = command @ [u_ad, s, kappa, 1]`` the steering.
+    ``u = command @ [u_ad, s, kappa, 1]`` the steering; with the road preview ``kappa`` is
+    the pair ``[kappa, kappa_p]`` in both (curvature under the car, preview).
     """
 
     parameters: L1Parameters
-    update: np.ndarray  # (5, 11)
-    command: np.ndarray  # (6,)
+    update: np.ndarray  # (5, 11), (5, 12) with the preview
+    command: np.ndarray  # (7,), (8,) with the preview
 
 
 def _affine_rows(function, n_inputs: int) -> np.ndarray:
@@ -81,18 +88,24 @@ def _affine_rows(function, n_inputs: int) -> np.ndarray:
     return np.column_stack([*columns, c])
 
 
-def scheduled_law(parameters: L1Parameters) -> ScheduledLaw:
-    """The :class:`ScheduledLaw` of the piecewise-constant law at these parameters."""
+def scheduled_law(parameters: L1Parameters, curvature_preview: bool = False) -> ScheduledLaw:
+    """The :class:`ScheduledLaw` of the piecewise-constant law at these parameters
+    (``curvature_preview``: u_ff at a second curvature input, the road preview)."""
     p = parameters
+    n = 2 if curvature_preview else 1  # curvature inputs: kappa (, kappa_p)
+
+    def preview(v, i):
+        return v[i + 1] if curvature_preview else None
 
     def update(v):
-        s_hat, u_ad = l1_law.piecewise_constant_update(p, v[0:4], v[4], v[5:9], v[9])
+        s_hat, u_ad = l1_law.piecewise_constant_update(p, v[0:4], v[4], v[5:9], v[9],
+                                                       preview(v, 9))
         return np.append(s_hat, u_ad)
 
     def command(v):
-        return [l1_law.steering_command(p, v[1:5], v[0], v[5])]
+        return [l1_law.steering_command(p, v[1:5], v[0], v[5], preview(v, 5))]
 
-    return ScheduledLaw(p, _affine_rows(update, 10), _affine_rows(command, 6)[0])
+    return ScheduledLaw(p, _affine_rows(update, 9 + n), _affine_rows(command, 5 + n)[0])
 
 
 class SwitchingL1Law(LeafSystem):
@@ -100,12 +113,15 @@ class SwitchingL1Law(LeafSystem):
     time without rebuilding the Diagram (module docstring); the Python leaf of
     :class:`SwitchingL1Controller`, with its own (Python) ``steering_rad`` output and the
     ``command_row`` r = [gains on s (4), gain on kappa, offset] with u = r . [s, kappa, 1],
-    a function of the discrete state only (cached between samples)."""
+    a function of the discrete state only (cached between samples); with
+    ``curvature_preview`` the input ``curvature_preview_per_m`` and r = [gains on s (4), on
+    kappa, on kappa_p, offset] with u = r . [s, kappa, kappa_p, 1]."""
 
     def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
                  settings: Settings, law: str = "piecewise_constant",
                  initial_design_index: int = 0, initial_speed_mps: float | None = None,
-                 speed_step_mps: float = 0.1, fast: bool = True):
+                 speed_step_mps: float = 0.1, fast: bool = True,
+                 curvature_preview: bool = False):
         super().__init__()
         if law != "piecewise_constant":
             raise ConfigError(f"switching controller: law {law!r} is not supported; only "
@@ -123,12 +139,15 @@ class SwitchingL1Law(LeafSystem):
         self.speed_step_mps = float(speed_step_mps)
         self.sample_period_s = float(settings.controller.sample_period_s)
         self.fast = bool(fast)
+        self.curvature_preview = bool(curvature_preview)
         self._cache: dict[tuple[int, int], ScheduledLaw] = {}
 
         self._s = self.DeclareVectorInputPort("state", 4)
         self._kappa = self.DeclareVectorInputPort("curvature_per_m", 1)
         self._speed = self.DeclareVectorInputPort("speed_mps", 1)
         self._design = self.DeclareVectorInputPort("design_index", 1)
+        self._kappa_p = (self.DeclareVectorInputPort("curvature_preview_per_m", 1)
+                         if self.curvature_preview else None)
         d0 = int(initial_design_index)
         v0 = designs[d0].speed_mps if initial_speed_mps is None else initial_speed_mps
         z0 = np.zeros(STATE_SIZE)
@@ -146,8 +165,13 @@ class SwitchingL1Law(LeafSystem):
             prerequisites_of_calc=xd)
         self.DeclareVectorOutputPort("scheduled_speed_mps", 1, self._calc_scheduled_speed,
                                      prerequisites_of_calc=xd)
-        self.DeclareVectorOutputPort("command_row", 6, self._calc_command_row,
-                                     prerequisites_of_calc=xd)
+        self.DeclareVectorOutputPort("command_row", self.command_row_size,
+                                     self._calc_command_row, prerequisites_of_calc=xd)
+
+    @property
+    def command_row_size(self) -> int:
+        """Length of ``command_row``: 6, or 7 with the road preview."""
+        return 7 if self.curvature_preview else 6
 
     # ---------------------------------------------------------------- scheduling
 
@@ -166,8 +190,9 @@ class SwitchingL1Law(LeafSystem):
         key = (int(design_index), int(grid_index))
         if key not in self._cache:
             p = l1_law.l1_parameters(self.vehicle, self.designs[key[0]], self.settings,
-                                     self.grid_speed(key[1]))
-            self._cache[key] = scheduled_law(p)
+                                     self.grid_speed(key[1]),
+                                     curvature_preview=self.curvature_preview)
+            self._cache[key] = scheduled_law(p, self.curvature_preview)
         return self._cache[key]
 
     def _requested_design(self, context) -> int:
@@ -180,16 +205,25 @@ class SwitchingL1Law(LeafSystem):
 
     # ---------------------------------------------------------------- the law
 
-    def _steering(self, law: ScheduledLaw, u_ad: float, s, kappa: float) -> float:
+    def _curvatures(self, context) -> np.ndarray:
+        """[kappa] or, with the road preview, [kappa, kappa_p] (1/m) at this context."""
+        kappa = self._kappa.Eval(context)
+        if self._kappa_p is None:
+            return np.array([kappa[0]])
+        return np.array([kappa[0], self._kappa_p.Eval(context)[0]])
+
+    def _steering(self, law: ScheduledLaw, u_ad: float, s, curvatures: np.ndarray) -> float:
         if self.fast:
             c = law.command
-            return float(c[0] * u_ad + c[1:5] @ s + c[5] * kappa + c[6])
-        return float(l1_law.steering_command(law.parameters, s, u_ad, kappa))
+            return float(c[0] * u_ad + c[1:5] @ s + c[5:-1] @ curvatures + c[-1])
+        preview = curvatures[1] if self.curvature_preview else None
+        return float(l1_law.steering_command(law.parameters, s, u_ad, curvatures[0], preview))
 
     def _sample(self, context, discrete_state) -> None:
         z = context.get_discrete_state(self._z).CopyToVector()
         s = self._s.Eval(context)
-        kappa = float(self._kappa.Eval(context)[0])
+        curvatures = self._curvatures(context)
+        kappa = float(curvatures[0])
         speed = float(self._speed.Eval(context)[0])
         requested = self._requested_design(context)
         switched = requested != int(z[DESIGN])  # switch: hand over u_ad, predictor restarts at s
@@ -201,7 +235,7 @@ class SwitchingL1Law(LeafSystem):
                                                    s, kappa)
             if not z[STOPPED]:
                 law = self.law_at(design, int(z[GRID]))
-                z[HELD] = self._steering(law, z[U_AD], s, kappa)
+                z[HELD] = self._steering(law, z[U_AD], s, curvatures)
                 z[STOPPED] = 1.0
         else:
             z[STOPPED] = 0.0
@@ -210,10 +244,11 @@ class SwitchingL1Law(LeafSystem):
             if switched:  # the predictor at s, in its jump-free coordinates (l1_law)
                 z[S_HAT] = l1_law.predictor_memory(law.parameters, s, kappa)
             if self.fast:
-                z[0:5] = law.update @ np.concatenate([z[0:5], s, [kappa, 1.0]])
+                z[0:5] = law.update @ np.concatenate([z[0:5], s, curvatures, [1.0]])
             else:
+                preview = curvatures[1] if self.curvature_preview else None
                 s_hat, u_ad = l1_law.piecewise_constant_update(law.parameters, z[S_HAT],
-                                                               z[U_AD], s, kappa)
+                                                               z[U_AD], s, kappa, preview)
                 z[S_HAT], z[U_AD] = s_hat, u_ad
         discrete_state.get_mutable_vector(self._z).SetFromVector(z)
 
@@ -224,17 +259,17 @@ class SwitchingL1Law(LeafSystem):
             return
         law = self.law_at(int(z[DESIGN]), int(z[GRID]))
         output.SetAtIndex(0, self._steering(law, z[U_AD], self._s.Eval(context),
-                                            float(self._kappa.Eval(context)[0])))
+                                            self._curvatures(context)))
 
     def _calc_command_row(self, context, output) -> None:
         z = context.get_discrete_state(self._z).get_value()
-        row = np.zeros(6)
+        row = np.zeros(self.command_row_size)
         if z[STOPPED]:
-            row[5] = z[HELD]
+            row[-1] = z[HELD]
         else:
             c = self.law_at(int(z[DESIGN]), int(z[GRID])).command
-            row[0:5] = c[1:6]
-            row[5] = c[0] * z[U_AD] + c[6]
+            row[:-1] = c[1:-1]
+            row[-1] = c[0] * z[U_AD] + c[-1]
         output.SetFromVector(row)
 
     def _calc_scheduled_speed(self, context, output) -> None:
@@ -257,18 +292,20 @@ class SwitchingL1Law(LeafSystem):
         mine.SetDiscreteState(self.initial_state(context, s0, curvature))
 
 
-def _row_product_system() -> SymbolicVectorSystem:
-    """``u = r[0:4] . s + r[4] kappa + r[5]`` for inputs [r (6), s (4), kappa], in C++.
+def _row_product_system(n_curvatures: int = 1) -> SymbolicVectorSystem:
+    """``u = r[0:4] . s + r[4:-1] . kappas + r[-1]`` for inputs [r (5 + n), s (4), kappas (n)]
+    in C++; kappas = [kappa] or, with the road preview, [kappa, kappa_p] (n = 2).
 
     Drake 1.51's SymbolicVectorSystem needs a state in a continuous diagram: one constant
     dummy state (derivative 0), as in :mod:`systems.plants`.
     """
-    r = sym.MakeVectorVariable(6, "r")
+    r = sym.MakeVectorVariable(5 + n_curvatures, "r")
     s = sym.MakeVectorVariable(4, "s")
-    kappa = sym.Variable("kappa")
+    kappas = sym.MakeVectorVariable(n_curvatures, "kappa")
     dummy = sym.Variable("unused")
-    u = sum((r[i] * s[i] for i in range(4)), sym.Expression(0.0)) + r[4] * kappa + r[5]
-    return SymbolicVectorSystem(state=[dummy], input=np.concatenate([r, s, [kappa]]),
+    u = sum((r[i] * s[i] for i in range(4)), sym.Expression(0.0)) + r[-1]
+    u = u + sum((r[4 + i] * kappas[i] for i in range(n_curvatures)), sym.Expression(0.0))
+    return SymbolicVectorSystem(state=[dummy], input=np.concatenate([r, s, kappas]),
                                 dynamics=[sym.Expression(0.0)], output=[u])
 
 
@@ -279,27 +316,33 @@ class SwitchingL1Controller(Diagram):
     ``fast=True``, the steering ``u = r . [s, kappa, 1]`` evaluated in C++ from the law's
     cached ``command_row`` (the output is needed at every integrator stage; the row changes
     only at samples). ``fast=False`` exports the law's Python output, which calls
-    ``l1_law.steering_command`` directly (the readable reference). Same ports as the leaf.
+    ``l1_law.steering_command`` directly (the readable reference). Same ports as the leaf
+    (``curvature_preview=True``: also ``curvature_preview_per_m``, the road preview).
     """
 
     def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
                  settings: Settings, law: str = "piecewise_constant",
                  initial_design_index: int = 0, initial_speed_mps: float | None = None,
-                 speed_step_mps: float = 0.1, fast: bool = True):
+                 speed_step_mps: float = 0.1, fast: bool = True,
+                 curvature_preview: bool = False):
         super().__init__()
         builder = DiagramBuilder()
         self._law = builder.AddNamedSystem("switching_l1_law", SwitchingL1Law(
             vehicle=vehicle, designs=designs, settings=settings, law=law,
             initial_design_index=initial_design_index, initial_speed_mps=initial_speed_mps,
-            speed_step_mps=speed_step_mps, fast=fast))
-        for name in ("state", "curvature_per_m", "speed_mps", "design_index"):
+            speed_step_mps=speed_step_mps, fast=fast, curvature_preview=curvature_preview))
+        curvature_ports = ["curvature_per_m"] + \
+            (["curvature_preview_per_m"] if curvature_preview else [])
+        for name in ("state", *curvature_ports, "speed_mps", "design_index"):
             builder.ExportInput(self._law.GetInputPort(name), name)
         if fast:
-            product = builder.AddNamedSystem("steering_from_row", _row_product_system())
-            mux = builder.AddSystem(Multiplexer([6, 4, 1]))
+            n = len(curvature_ports)
+            product = builder.AddNamedSystem("steering_from_row", _row_product_system(n))
+            mux = builder.AddSystem(Multiplexer([5 + n, 4] + [1] * n))
             builder.Connect(self._law.GetOutputPort("command_row"), mux.get_input_port(0))
             builder.ConnectInput("state", mux.get_input_port(1))
-            builder.ConnectInput("curvature_per_m", mux.get_input_port(2))
+            for i, name in enumerate(curvature_ports):
+                builder.ConnectInput(name, mux.get_input_port(2 + i))
             builder.Connect(mux.get_output_port(0), product.get_input_port(0))
             builder.ExportOutput(product.get_output_port(0), "steering_rad")
         else:

@@ -105,3 +105,69 @@ def test_route_source_outputs_the_segment_under_the_car(conditions):
         assert source.GetOutputPort("friction_mu").Eval(sub)[0] == seg.friction_mu
         assert source.GetOutputPort("curvature_per_m").Eval(sub)[0] == \
             pytest.approx(float(route.curvature_at(s)))
+
+
+def _preview_source(route, speed_mps, ahead_s=0.4, window_s=0.4):
+    source = RouteSource(route, preview_ahead_s=ahead_s, preview_window_s=window_s)
+    context = source.CreateDefaultContext()
+    source.GetInputPort("speed_mps").FixValue(context, [speed_mps])
+
+    def preview_at(s):
+        source.GetInputPort("arc_length_m").FixValue(context, [s])
+        return source.GetOutputPort("curvature_preview_per_m").Eval(context)[0]
+    return preview_at
+
+
+def _mean_curvature(route, lo, hi):
+    """The mean of kappa over [lo, hi] by quadrature (independent of curvature_integral)."""
+    from scipy.integrate import quad
+    kinks = [k for k in route._knots if lo < k < hi]
+    return quad(lambda x: float(route.curvature_at(x)), lo, hi, points=kinks or None,
+                epsabs=1e-13, epsrel=1e-12)[0] / (hi - lo)
+
+
+@pytest.mark.parametrize("speed", [5.0, 12.0, 20.0])
+def test_route_preview_is_the_mean_curvature_over_the_window_at_the_current_speed(
+        conditions, speed):
+    route = Route.build(SPECS, conditions, PRESET, 3)  # straight, then 0.01/m from 55-65 m
+    preview = _preview_source(route, speed)
+    for s in (40.0, 50.0, 53.0, 57.0, 60.0, 63.0, 70.0):
+        expected = _mean_curvature(route, s, s + 0.4 * speed)  # window [s, s + 0.4 V]
+        assert preview(s) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+    # the preview sees the arc before the car reaches the ramp: a feedforward lead
+    s = 55.0 - 0.2 * speed
+    assert float(route.curvature_at(s)) == 0.0 and preview(s) > 0.0
+    # a window ending 1 s ahead, 0.4 s long: [s + 0.6 V, s + V]
+    ahead = _preview_source(route, speed, ahead_s=1.0, window_s=0.4)
+    assert ahead(50.0) == pytest.approx(
+        _mean_curvature(route, 50.0 + 0.6 * speed, 50.0 + speed), rel=1e-9, abs=1e-12)
+
+
+def test_route_preview_on_an_arc_is_its_curvature_and_at_rest_the_curvature_under_the_car(
+        conditions):
+    route = Route.build(SPECS, conditions, PRESET, 3)
+    assert _preview_source(route, 12.0)(80.0) == pytest.approx(0.01, abs=1e-15)  # [80, 84.8]
+    assert _preview_source(route, 12.0)(200.0) == pytest.approx(-0.02, abs=1e-15)  # last arc
+    at_rest = _preview_source(route, 0.0)
+    for s in (10.0, 58.0, 61.5, 80.0):
+        assert at_rest(s) == pytest.approx(float(route.curvature_at(s)), abs=1e-15)
+
+
+def test_the_route_source_has_a_preview_port_only_with_a_preview_window(conditions):
+    route = Route.build(SPECS, conditions, PRESET, 3)
+    plain = RouteSource(route)
+    assert not plain.HasOutputPort("curvature_preview_per_m")
+    assert not plain.HasInputPort("speed_mps")
+    with pytest.raises(ConfigError, match="preview_window_s"):
+        RouteSource(route, preview_window_s=-0.1)
+    with pytest.raises(ConfigError, match="preview_ahead_s"):
+        RouteSource(route, preview_ahead_s=math.nan, preview_window_s=0.4)
+
+
+def test_route_preview_of_one_point_equals_the_array_evaluation(conditions):
+    route = Route.build(SPECS, conditions, PRESET, 3)  # includes a ramp at 185-195 m
+    s = np.linspace(-5.0, 240.0, 491)
+    for ahead, window in ((4.8, 4.8), (12.0, 4.8), (0.0, 0.0), (3.0, 0.0)):
+        one_by_one = [route.preview_curvature_at(float(x), ahead, window) for x in s]
+        np.testing.assert_allclose(one_by_one, route.preview_curvature_at(s, ahead, window),
+                                   rtol=0, atol=1e-15)

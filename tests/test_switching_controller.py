@@ -42,10 +42,19 @@ class CurvatureAlongRoad(LeafSystem):
             lambda c, o: o.SetAtIndex(0, float(road.curvature_at(self._x.Eval(c)[0]))))
 
 
+PREVIEW = SETTINGS.controller.preview_window_s > 0  # the road preview, as simulate runs it
+
+
 def _fixed_speed_loop(controller, road, t_final, stiffness=42_000.0, mu=0.6):
-    """Nonlinear plant + switching controller at constant speed (as systems.closed_loop)."""
+    """Nonlinear plant + switching controller at constant speed (as systems.closed_loop, with
+    its road preview when the controller has the port)."""
     builder = DiagramBuilder()
     ctrl = builder.AddSystem(controller)
+    if ctrl.HasInputPort("curvature_preview_per_m"):
+        ctl = SETTINGS.controller
+        ahead = builder.AddSystem(TrajectorySource(road.preview_curvature_trajectory(
+            SPEED, t_final, ahead_s=ctl.preview_ahead_s, window_s=ctl.preview_window_s)))
+        builder.Connect(ahead.get_output_port(), ctrl.GetInputPort("curvature_preview_per_m"))
     plant = builder.AddSystem(NonlinearLateralPlant(CAR))
     limit = CAR.steering_limit_rad
     sat = builder.AddSystem(Saturation([-limit], [limit]))
@@ -84,7 +93,7 @@ def _run_reference_comparison(fast):
                      plant="nonlinear", law="piecewise_constant", t_final_s=t_final,
                      initial_state=s0)
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED, fast=fast)
+                                 initial_speed_mps=SPEED, fast=fast, curvature_preview=PREVIEW)
     diagram, plant, ctrl, state_log, steer_log = _fixed_speed_loop(ctrl, road, t_final)
     simulator = Simulator(diagram)
     from pydrake.systems.analysis import ApplySimulatorConfig
@@ -117,6 +126,8 @@ def _controller_context(**kw):
     s = np.array([0.2, -0.3, 0.05, 0.1])
     ctrl.GetInputPort("state").FixValue(ctx, s)
     ctrl.GetInputPort("curvature_per_m").FixValue(ctx, [1 / 60])
+    if ctrl.curvature_preview:  # the road ahead bends more than the road under the car
+        ctrl.GetInputPort("curvature_preview_per_m").FixValue(ctx, [1 / 52])
     ctrl.GetInputPort("speed_mps").FixValue(ctx, [SPEED])
     ctrl.GetInputPort("design_index").FixValue(ctx, [0.0])
     return ctrl, ctx, s
@@ -154,9 +165,10 @@ def test_a_design_switch_acts_at_the_sample_after_the_request():
     assert u == pytest.approx(-(DESIGNS[1].k_m_array @ [0.1, 0, 0, 0]) + z[4], abs=1e-12)
 
 
-def test_the_fast_update_is_the_law_evaluated_directly():
-    fast, ctx_f, s = _controller_context(fast=True)
-    slow, ctx_s, _ = _controller_context(fast=False)
+@pytest.mark.parametrize("preview", [False, True])
+def test_the_fast_update_is_the_law_evaluated_directly(preview):
+    fast, ctx_f, s = _controller_context(fast=True, curvature_preview=preview)
+    slow, ctx_s, _ = _controller_context(fast=False, curvature_preview=preview)
     z = np.array([0.25, -0.2, 0.04, 0.12, 0.003, 0, 70, 0, 0])
     for ctx in (ctx_f, ctx_s):
         ctx.SetDiscreteState(z)
@@ -168,16 +180,20 @@ def test_the_fast_update_is_the_law_evaluated_directly():
         slow.GetOutputPort("steering_rad").Eval(ctx_s)[0], rel=1e-12)
 
 
-def test_the_cpp_steering_output_equals_the_law_output():
+@pytest.mark.parametrize("preview", [False, True])
+def test_the_cpp_steering_output_equals_the_law_output(preview):
     leaf = SwitchingL1Law(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                          initial_speed_mps=SPEED)
+                          initial_speed_mps=SPEED, curvature_preview=preview)
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED)
+                                 initial_speed_mps=SPEED, curvature_preview=preview)
     ctx_l, ctx_c = leaf.CreateDefaultContext(), ctrl.CreateDefaultContext()
     z = np.array([0.25, -0.2, 0.04, 0.12, 0.003, 1, 70, 0, 0])
+    inputs = [("state", [0.2, -0.3, 0.05, 0.1]), ("curvature_per_m", [0.02]),
+              ("speed_mps", [SPEED]), ("design_index", [1.0])]
+    if preview:
+        inputs.append(("curvature_preview_per_m", [0.007]))
     for system, ctx in ((leaf, ctx_l), (ctrl, ctx_c)):
-        for name, value in (("state", [0.2, -0.3, 0.05, 0.1]), ("curvature_per_m", [0.02]),
-                            ("speed_mps", [SPEED]), ("design_index", [1.0])):
+        for name, value in inputs:
             system.GetInputPort(name).FixValue(ctx, value)
     ctx_l.SetDiscreteState(z)
     ctrl.law_system().GetMyMutableContextFromRoot(ctx_c).SetDiscreteState(z)
@@ -188,6 +204,18 @@ def test_the_cpp_steering_output_equals_the_law_output():
     ctrl.law_system().GetMyMutableContextFromRoot(ctx_c).SetDiscreteState(z)
     assert ctrl.GetOutputPort("steering_rad").Eval(ctx_c)[0] == 0.123
     assert leaf.GetOutputPort("steering_rad").Eval(ctx_l)[0] == 0.123
+
+
+def test_with_the_preview_the_feedforward_follows_the_road_ahead_not_the_road_under_the_car():
+    ctrl, ctx, _ = _controller_context(curvature_preview=True)
+    law = ctrl.law_at(0, ctrl.grid_index(0, SPEED)).parameters
+    steering = ctrl.GetOutputPort("steering_rad")
+    u_ahead = steering.Eval(ctx)[0]  # kappa = 1/60 under the car, 1/52 ahead
+    ctrl.GetInputPort("curvature_per_m").FixValue(ctx, [0.0])  # straight under the car
+    assert steering.Eval(ctx)[0] == pytest.approx(u_ahead, abs=1e-15)
+    ctrl.GetInputPort("curvature_preview_per_m").FixValue(ctx, [0.0])
+    assert u_ahead - steering.Eval(ctx)[0] == pytest.approx(law.k_ff * SPEED / 52, rel=1e-12)
+    assert law.k_ff != 0.0
 
 
 def test_speed_is_scheduled_on_the_grid_and_clipped_to_the_design_range():
