@@ -44,13 +44,18 @@ class EpisodeRunner:
         key = (tuple(design.labels), design.interval, tuple(design.k_m), design.filter_gain, speed,
                float(stiffness_n_per_rad), float(friction_mu))
         if key not in self._cache:
-            road = Road.episode_curve(radius_m=self.settings.synthesis.design_radius_m,
-                                      length_m=speed * self.duration_s)
-            tape = simulate(vehicle=self.vehicle, design=design, settings=self.settings,
-                            stiffness_n_per_rad=float(stiffness_n_per_rad),
-                            friction_mu=float(friction_mu), speed_mps=speed, road=road,
-                            plant="nonlinear", t_final_s=self.duration_s, tape_period_s=0.05)
+            tape = self.tape(design, stiffness_n_per_rad, friction_mu)
             self._cache[key] = EpisodeOutcome(metrics.left_lane(tape),
                                               metrics.peak_lateral_offset(tape), speed)
             self.simulated += 1
         return self._cache[key]
+
+    def tape(self, design: ControllerDesign, stiffness_n_per_rad: float, friction_mu: float):
+        """The logged episode (not cached) of ``design`` at its safe speed, which must be > 0."""
+        speed = float(design.speed_mps)
+        road = Road.episode_curve(radius_m=self.settings.synthesis.design_radius_m,
+                                  length_m=speed * self.duration_s)
+        return simulate(vehicle=self.vehicle, design=design, settings=self.settings,
+                        stiffness_n_per_rad=float(stiffness_n_per_rad),
+                        friction_mu=float(friction_mu), speed_mps=speed, road=road,
+                        plant="nonlinear", t_final_s=self.duration_s, tape_period_s=0.05)

@@ -6,6 +6,7 @@
 ``meta.json``     command line, git revision, root seed, configuration, wall time
 ``sweep.png``     share certified, velocity and instability of f and g against eps
 ``radii.png``     certified-radius distributions of g per preset and sigma
+``traces.png``    lateral offset of f and g on the same attacked frame (largest SA budget)
 """
 
 from __future__ import annotations
@@ -40,7 +41,8 @@ def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], co
     ]
     if plots:
         written += [atomic_write_bytes(out / "sweep.png", sweep_plot(summary, config)),
-                    atomic_write_bytes(out / "radii.png", radius_plot(rows, config))]
+                    atomic_write_bytes(out / "radii.png", radius_plot(rows, config)),
+                    atomic_write_bytes(out / "traces.png", traces_plot(rows, config))]
     return written
 
 
@@ -101,4 +103,68 @@ def radius_plot(rows: list[dict], config) -> bytes:
         axes[0, j].set_xlabel("certified radius of the run-time range")
         axes[0, j].legend(fontsize=7)
     axes[0, 0].set_ylabel("frame-cells")
+    return _png(fig)
+
+
+def trace_episodes(rows: list[dict], config) -> list[tuple[dict, dict]]:
+    """Per preset, the (f row, g row) pair to draw: the same frame under SA at the largest
+    budget where f left its lane (else where f drove fastest), g at the sweep's sigma."""
+    pairs = []
+    eps = max((r["eps"] for r in rows if r["attack"] == "sa"), default=None)
+    for p in config.presets:
+        f_rows = [r for r in rows if r["preset"] == p and r["pipeline"] == "f"
+                  and r["attack"] == "sa" and r["eps"] == eps]
+        if not f_rows:
+            continue
+        f = max(f_rows, key=lambda r: (bool(r["left_lane"]), r["velocity_mps"], -r["position"]))
+        g = [r for r in rows if r["preset"] == p and r["pipeline"] == "g"
+             and r["sigma"] == config.sweep_sigma and r["attack"] == "sa" and r["eps"] == eps
+             and r["position"] == f["position"]]
+        if g:
+            pairs.append((f, g[0]))
+    return pairs
+
+
+def traces_plot(rows: list[dict], config, designs: list | None = None) -> bytes:
+    """Lateral offset against time of f's and g's episodes on the same attacked frame: each
+    drives the design its perception chose, at that design's safe speed (constant, in the
+    legend), on the Fiala plant with the frame's true stiffness and friction."""
+    from matplotlib.figure import Figure
+
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from drake_cert.experiments.episodes import EpisodeRunner
+    from synthesis.table import synthesize_table
+
+    vehicle, settings = load_vehicle(), load_settings()
+    designs = designs if designs is not None else synthesize_table(vehicle, load_conditions(),
+                                                                   settings)
+    by_labels = {"+".join(d.labels): d for d in designs}
+    runner = EpisodeRunner(vehicle, settings)
+    pairs = trace_episodes(rows, config)
+    fig = Figure(figsize=(4.2 * max(1, len(pairs)), 3.4))
+    axes = fig.subplots(1, max(1, len(pairs)), squeeze=False)
+    for j, pair in enumerate(pairs):
+        ax = axes[0, j]
+        margin = None
+        for r, style in zip(pair, ("--", "-"), strict=True):
+            name = "f" if r["pipeline"] == "f" else f"g (sigma {r['sigma']})"
+            if r["velocity_mps"] <= 0:
+                ax.plot([], [], style, label=f"{name}: stops")
+                continue
+            tape = runner.tape(by_labels[r["design_labels"]], r["stiffness_n_per_rad"],
+                               r["friction_mu"])
+            margin = tape.lane_margin_m
+            ax.plot(tape.times_s, tape.states[:, 0], style,
+                    label=f"{name}: {r['design_labels']} at {r['velocity_mps']:.1f} m/s"
+                          + (", leaves lane" if r["left_lane"] else ""))
+        if margin is not None:
+            for sign in (1, -1):
+                ax.axhline(sign * margin, color="k", lw=0.8, ls=":")
+        f = pair[0]
+        ax.set_title(f"{f['preset']}: frame {f['frame']} ({f['true_label']}), SA eps {f['eps']:g}",
+                     fontsize=9)
+        ax.set_xlabel("time (s)")
+        ax.set_ylabel("lateral offset e1 (m)")
+        ax.legend(fontsize=7)
+        ax.grid(alpha=0.3)
     return _png(fig)

@@ -152,7 +152,8 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
                        stiffness: torch.Tensor, label_names: list[str], table: ConditionsTable,
                        settings: CertifySettings,
                        progress: Callable[[Iterable], Iterable] | None = None,
-                       calibration: tuple | None = None) -> tuple[list[dict], dict]:
+                       calibration: tuple | None = None, robust=None,
+                       clean_cache: dict | None = None) -> tuple[list[dict], dict]:
     """Certify (sigma > 0) or evaluate (sigma = 0) a classifier on frames, clean and attacked.
 
     For sigma > 0, each frame gets the certificate of :meth:`SmoothedClassifier.certify` with
@@ -160,8 +161,11 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
     attacked frame, and the run-time interval at budget eps at the observed frame. With
     ``settings.conformal``, ``calibration = (images, labels)`` of held-out frames calibrates
     the robust conformal interval (:mod:`drake_cert.certification.conformal`), reported
-    beside the certificate's interval from the same samples. Every frame and purpose draws
-    from its own stream (:meth:`CertifySettings.frame_streams`).
+    beside the certificate's interval from the same samples; ``robust``, a calibration made
+    before with the same settings, skips that step. Every frame and purpose draws from its own
+    stream (:meth:`CertifySettings.frame_streams`), so the clean certificate of frame i is the
+    same in every call with the same seed, n0, n and alpha: ``clean_cache`` (a dict, filled
+    and read by frame index) lets several attacks on the same frames share it.
     """
     settings.validate()
     model = with_precision(model, settings.precision)  # certify, attack, calibrate: one model
@@ -185,20 +189,19 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
     per_frame = (settings.n0 + settings.n) * (2 if attacked else 1)
     smooth = SmoothedClassifier(model, k, settings.sigma, device=settings.device,
                                 compile=settings.compile_model(per_frame * len(images)))
-    robust = None
-    if settings.conformal:
+    if settings.conformal and robust is None:
         if calibration is None:
             raise CertificationError("the conformal interval needs calibration frames")
-        robust = calibrate_robust_conformal(
-            smooth, calibration[0], [int(v) for v in calibration[1]], n=settings.calibration_n,
-            batch_size=settings.batch_size, alpha_c=settings.conformal_alpha_c,
-            beta_cal=settings.conformal_beta, beta_test=settings.conformal_beta,
-            root_seed=settings.seed, progress=progress)
+        robust = calibrate_classifier(smooth, calibration, settings, progress)
     for i in _progress(progress, range(len(images))):
         st = settings.frame_streams(i)
-        clean = smooth.certify(images[i], settings.n0, settings.n, settings.alpha,
-                               settings.batch_size, safe_set=safe, seed=st["estimation"],
-                               selection_seed=st["selection"])
+        clean = clean_cache.get(i) if clean_cache is not None else None
+        if clean is None:
+            clean = smooth.certify(images[i], settings.n0, settings.n, settings.alpha,
+                                   settings.batch_size, safe_set=safe, seed=st["estimation"],
+                                   selection_seed=st["selection"])
+            if clean_cache is not None:
+                clean_cache[i] = clean
         seen = smooth.certify(adversarial[i], settings.n0, settings.n, settings.alpha,
                               settings.batch_size, safe_set=safe,
                               seed=st["attacked_estimation"],
@@ -229,6 +232,18 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
     if robust is not None:
         summary.update(summarize_conformal(records, robust))
     return records, summary
+
+
+def calibrate_classifier(smooth: SmoothedClassifier, calibration: tuple,
+                         settings: CertifySettings,
+                         progress: Callable[[Iterable], Iterable] | None = None):
+    """The robust conformal calibration of ``smooth`` on ``calibration = (images, labels)``
+    (:func:`calibrate_robust_conformal` with the settings' levels and root seed)."""
+    return calibrate_robust_conformal(
+        smooth, calibration[0], [int(v) for v in calibration[1]], n=settings.calibration_n,
+        batch_size=settings.batch_size, alpha_c=settings.conformal_alpha_c,
+        beta_cal=settings.conformal_beta, beta_test=settings.conformal_beta,
+        root_seed=settings.seed, progress=progress)
 
 
 def clopper_pearson_interval(successes: int, trials: int,
@@ -323,12 +338,13 @@ def json_safe(value):
 def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
                       stiffness: torch.Tensor, calibration: tuple | None,
                       envelope: tuple[float, float], settings: CertifySettings,
-                      progress: Callable[[Iterable], Iterable] | None = None
-                      ) -> tuple[list[dict], dict]:
+                      progress: Callable[[Iterable], Iterable] | None = None,
+                      conformal=None) -> tuple[list[dict], dict]:
     """Median-smoothing certificates (sigma > 0) or plain predictions (sigma = 0) of a regressor.
 
     ``calibration`` is ``(images, stiffness, labels)`` of calibration frames (sigma > 0): the
-    conformal beta is computed on them first (:func:`calibrate_conformal`). Each test frame
+    conformal beta is computed on them first (:func:`calibrate_conformal`); ``conformal``, a
+    :class:`ConformalCalibration` made before with the same settings, skips that. Each test frame
     gets ``certify_interval`` at budget eps at the observed frame and the run-time interval.
     """
     settings.validate()
@@ -346,25 +362,16 @@ def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torc
                             "clean_prediction_n_per_rad": float(clean[i]),
                             "prediction_n_per_rad": float(seen[i])})
         return records, summarize_regression(records, settings, None)
-    if calibration is None:
-        raise CertificationError("median smoothing needs calibration frames for beta")
-    cal_images, cal_stiffness, cal_labels = calibration
-    need = min_calibration_frames(settings.alpha_c)
-    counts = torch.bincount(torch.as_tensor(cal_labels), minlength=int(labels.max()) + 1)
-    if len(cal_labels) == 0 or int(counts[torch.unique(labels)].min()) < need:
-        raise CertificationError(
-            f"calibration frames per label {counts.tolist()} are too few for the conformal "
-            f"beta at alpha_c = {settings.alpha_c:g}: each label needs at least {need}")
-    samples = settings.calibration_n * len(cal_images) + settings.n * len(images)
+    samples = settings.n * len(images)
+    if conformal is None:
+        if calibration is None:
+            raise CertificationError("median smoothing needs calibration frames for beta")
+        check_regression_calibration(calibration[2], labels, settings.alpha_c)
+        samples += settings.calibration_n * len(calibration[0])
     smooth = MedianSmoothedRegressor(model, settings.sigma, device=settings.device,
                                      compile=settings.compile_model(samples))
-    cal = calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
-                              n=settings.calibration_n, batch_size=settings.batch_size,
-                              alpha_m=settings.alpha_m, alpha_c=settings.alpha_c,
-                              progress=progress,
-                              frame_seeds=[stream_seed(settings.seed, i, "calibration",
-                                                       split="calibration")
-                                           for i in range(len(cal_images))])
+    cal = conformal if conformal is not None else calibrate_regressor(
+        smooth, calibration, settings, progress)
     for i in _progress(progress, range(len(images))):
         median, lower, upper = smooth.certify_interval(
             adversarial[i], settings.eps, settings.n, settings.alpha, settings.batch_size,
@@ -379,6 +386,32 @@ def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torc
     summary.update({"betas_n_per_rad": {str(k): v for k, v in cal.betas.items()},
                     "calibration_frames": cal.frames, "compile_seconds": smooth.compile_seconds})
     return records, summary
+
+
+def check_regression_calibration(cal_labels, labels: torch.Tensor, alpha_c: float) -> None:
+    """CertificationError unless every test label has enough calibration frames for the
+    conformal beta at ``alpha_c``."""
+    need = min_calibration_frames(alpha_c)
+    counts = torch.bincount(torch.as_tensor(cal_labels), minlength=int(labels.max()) + 1)
+    if len(cal_labels) == 0 or int(counts[torch.unique(labels)].min()) < need:
+        raise CertificationError(
+            f"calibration frames per label {counts.tolist()} are too few for the conformal "
+            f"beta at alpha_c = {alpha_c:g}: each label needs at least {need}")
+
+
+def calibrate_regressor(smooth: MedianSmoothedRegressor, calibration: tuple,
+                        settings: CertifySettings,
+                        progress: Callable[[Iterable], Iterable] | None = None):
+    """The conformal beta of ``smooth`` on ``calibration = (images, stiffness, labels)``, each
+    frame with its own calibration stream of the root seed."""
+    cal_images, cal_stiffness, cal_labels = calibration
+    return calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
+                               n=settings.calibration_n, batch_size=settings.batch_size,
+                               alpha_m=settings.alpha_m, alpha_c=settings.alpha_c,
+                               progress=progress,
+                               frame_seeds=[stream_seed(settings.seed, i, "calibration",
+                                                        split="calibration")
+                                            for i in range(len(cal_images))])
 
 
 def summarize_regression(records: list[dict], settings: CertifySettings,
