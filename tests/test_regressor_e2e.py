@@ -12,7 +12,7 @@ import torch
 from drake_cert.certification.regressor import MedianSmoothedRegressor
 from drake_cert.config import load_conditions
 from drake_cert.perception.frameset import FrameSet
-from drake_cert.perception.models import load_model, model_path, save_model
+from drake_cert.perception.models import load_model, model_path, read_model_file, save_model
 from drake_cert.perception.training import TrainConfig, train_regressor_end_to_end
 
 PRESET = "carla-like"
@@ -62,4 +62,14 @@ def test_end_to_end_regressor_beats_the_class_means_and_smooths(tmp_path):
     loaded = load_model(PRESET, "regress", 0.25, tmp_path)
     with torch.no_grad():
         assert torch.allclose(loaded(test.images), pred)
-    assert path.exists()
+    assert read_model_file(path)["kind"] == "regressor_net"
+
+
+def test_shipped_regressors_at_sigma_0_25_are_end_to_end_networks_in_n_per_rad():
+    for preset in ("carla-like", "rtk-like", "robotcar-like"):
+        assert read_model_file(model_path(preset, "regress", 0.25))["kind"] == "regressor_net"
+        model = load_model(preset, "regress", 0.25)
+        assert model.meta["regressor"] == "end_to_end"
+        with torch.no_grad():
+            out = model(torch.rand(2, 3, model.meta["image_size"], model.meta["image_size"]))
+        assert out.shape == (2, 1) and bool(((out > 1e4) & (out < 3e5)).all())

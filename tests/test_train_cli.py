@@ -57,7 +57,12 @@ def test_train_writes_models_with_provenance_and_a_manifest_then_skips(capsys, t
     cmd = classifier.meta["provenance"]["command"]
     assert cmd.startswith("drake-cert train --preset rtk-like --task classify --sigma 0.5")
     assert classifier.meta["sigma"] == 0.5 and classifier.meta["provenance"]["seed"] == 0
-    assert regressor(torch.rand(2, 3, 64, 64)).shape == (2,)
+    # The default regressor is the end-to-end network: [B, 1] stiffness in N/rad.
+    assert regressor.meta["regressor"] == "end_to_end"
+    with torch.no_grad():
+        stiffness = regressor(torch.rand(2, 3, 64, 64))
+    assert stiffness.shape == (2, 1)
+    assert bool(((stiffness > 1e4) & (stiffness < 3e5)).all())  # N/rad, not 1e5-scaled units
     manifest = yaml.safe_load((tmp_path / "MANIFEST.yaml").read_text())
     assert set(manifest["models"]) == {"rtk-like/classify_sigma0.5.pt",
                                        "rtk-like/regress_sigma0.5.pt"}
@@ -67,6 +72,21 @@ def test_train_writes_models_with_provenance_and_a_manifest_then_skips(capsys, t
     assert cli.main(["train", *TINY, "--sigma", "0.5", "--models", root]) == 0
     assert "exists; skipping" in capsys.readouterr().err
     assert model_path("rtk-like", "classify", 0.5, root).stat().st_mtime_ns == before
+
+
+def test_regressor_head_option_fits_the_ridge_head_on_frozen_features(capsys, tmp_path):
+    from drake_cert.perception.models import StiffnessRegressor, read_model_file
+
+    root = str(tmp_path)
+    assert cli.main(["train", *TINY, "--sigma", "0.25", "--models", root]) == 0
+    assert cli.main(["train", *TINY, "--task", "regress", "--regressor", "head", "--sigma",
+                     "0.25", "--models", root]) == 0
+    path = model_path("rtk-like", "regress", 0.25, root)
+    assert read_model_file(path)["kind"] == "regressor"
+    head = load_model("rtk-like", "regress", 0.25, root)
+    assert isinstance(head, StiffnessRegressor)
+    assert "--regressor head" in head.meta["provenance"]["command"]
+    assert head(torch.rand(2, 3, 64, 64)).shape == (2,)
 
 
 def test_generate_writes_a_sample_grid_and_class_folders(capsys, tmp_path):

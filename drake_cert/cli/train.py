@@ -1,4 +1,9 @@
-"""``drake-cert train``: train a classifier (noise-augmented at sigma) or fit its regressor head.
+"""``drake-cert train``: train a classifier or a stiffness regressor (noise-augmented at sigma).
+
+The regressor (``--task regress``) is by default a one-output network trained end to end
+under the same noise, its backbone initialised from the classifier at the same sigma
+(``--regressor net``); ``--regressor head`` fits the older ridge head on the classifier's
+frozen features instead. Both need the classifier file.
 
 One model per file (``drake_cert/data/models/<preset>/<task>_sigma<S>.pt`` by default), so an
 interrupted ``--all`` resumes with the next missing model; a classifier also writes a
@@ -28,9 +33,14 @@ MIN_EPOCHS = 6
 def configure(parser) -> None:
     parser.add_argument("--preset", help="preset name (conditions table), e.g. carla-like")
     parser.add_argument("--task", choices=("classify", "regress"), default=None,
-                        help="classify: noise-augmented classifier; regress: linear stiffness "
-                             "head on that classifier's frozen features (needs the classifier); "
-                             "default classify, both with --all")
+                        help="classify: noise-augmented classifier; regress: stiffness "
+                             "regressor (needs the classifier at the same sigma, see "
+                             "--regressor); default classify, both with --all")
+    parser.add_argument("--regressor", choices=("net", "head"), default="net",
+                        help="regress: 'net' trains the whole one-output network end to end "
+                             "under the noise (backbone initialised from the classifier); "
+                             "'head' fits a ridge head on the classifier's frozen features "
+                             "(default: net)")
     parser.add_argument("--sigma", default=None,
                         help="Gaussian noise std in [0, 1] pixel space (0 = non-robust model)")
     parser.add_argument("--all", action="store_true",
@@ -38,7 +48,8 @@ def configure(parser) -> None:
                              f"{', '.join(f'{s:g}' for s in ALL_SIGMAS)} x task, "
                              "skipping models that exist")
     parser.add_argument("--epochs", type=int, default=None,
-                        help=f"classifier epochs (default: max({MIN_EPOCHS}, "
+                        help=f"classifier and end-to-end regressor epochs (default: "
+                             f"max({MIN_EPOCHS}, "
                              f"ceil({FRAME_PASSES} / training frames)))")
     parser.add_argument("--seed", type=int, default=0, help="data and training seed")
     parser.add_argument("--frames-per-class", type=int, default=None,
@@ -98,7 +109,10 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
     from drake_cert.perception.models import sigma_tag
 
     cmd = ["drake-cert", "train", "--preset", preset, "--task", task, "--sigma", sigma_tag(sigma)]
-    if args.epochs is not None and task == "classify":
+    head = task == "regress" and getattr(args, "regressor", "net") == "head"
+    if task == "regress" and head:
+        cmd += ["--regressor", "head"]
+    if args.epochs is not None and not head:
         cmd += ["--epochs", str(args.epochs)]
     if args.seed != 0:
         cmd += ["--seed", str(args.seed)]
@@ -143,7 +157,7 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
                                                              name)
     else:
         model, train_metrics, test_metrics, extra = _fit_regressor(preset, train, test, sigma,
-                                                                   args)
+                                                                   args, name)
         meta.update(extra)
     seconds = time.perf_counter() - t0
     meta["train_metrics"] = train_metrics
@@ -185,20 +199,38 @@ def _fit_classifier(train, test, sigma: float, args, ckpt: Path, name: str):
     return model, train_metrics, test_metrics
 
 
-def _fit_regressor(preset: str, train, test, sigma: float, args):
-    """Fit the ridge head on the classifier's features; returns (model, train metrics,
-    test metrics, provenance of the classifier it was fitted on)."""
+def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "regress"):
+    """The stiffness regressor: end to end (``--regressor net``, default: a one-output
+    network, backbone initialised from the classifier, trained under the noise with the
+    classifier's epochs rule) or the ridge head on the classifier's frozen features
+    (``--regressor head``). Returns (model, train metrics, test metrics, extra meta: the
+    classifier file and SHA-256 it was fitted on / initialised from)."""
     from drake_cert.perception.models import file_sha256, load_model
-    from drake_cert.perception.training import evaluate_mse, fit_regressor
+    from drake_cert.perception.training import (
+        evaluate_mae,
+        evaluate_mse,
+        fit_regressor,
+        train_regressor_end_to_end,
+    )
 
     cpath = _require_classifier(preset, sigma, args.models)
     classifier = load_model(preset, "classify", sigma, args.models)
-    model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
+    sha = file_sha256(cpath)
+    if getattr(args, "regressor", "net") == "head":
+        model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
+        extra = {"regressor": "head", "classifier_file": cpath.name, "classifier_sha256": sha}
+    else:
+        epochs = args.epochs or default_epochs(len(train))
+        model, train_metrics = train_regressor_end_to_end(
+            train, sigma=sigma, epochs=epochs, seed=args.seed, init=classifier, progress=True,
+            description=name)
+        extra = {"regressor": "end_to_end", "init_file": cpath.name, "init_sha256": sha}
     test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
                     "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
                                                                 seed=args.seed),
+                    "test_mae_noisy_n_per_rad": evaluate_mae(model, test, sigma=sigma,
+                                                             seed=args.seed),
                     "test_frames": len(test)}
-    extra = {"classifier_file": cpath.name, "classifier_sha256": file_sha256(cpath)}
     return model, train_metrics, test_metrics, extra
 
 

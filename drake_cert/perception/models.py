@@ -3,14 +3,18 @@
 The classifier f maps a frame in [0, 1] pixel space to logits over a preset's labels; trained
 with Gaussian noise at sigma (Cohen et al. 2019) it is the base model of randomized smoothing,
 and sigma = 0 is the paper's non-robust f. The regressor (paper: ResNet features + linear
-SVR) is the classifier's frozen convolutional features plus a linear head that outputs the
-cornering stiffness per tire in N/rad.
+SVR) is, by default, a one-output :class:`SmallResNet` trained end to end under Gaussian noise
+(backbone initialised from the classifier at the same sigma) whose output is the cornering
+stiffness per tire in N/rad, [B, 1]; the older regressor is the classifier's frozen
+convolutional features plus a linear head (:class:`StiffnessRegressor`, output [B]).
 
 Files: one model per file, ``<root>/<preset>/<task>_sigma<S>.pt`` with root
-``drake_cert/data/models`` by default. A classifier file holds its weights; a regressor file
-holds its head and the SHA-256 of the classifier file whose features it uses (both are
-loaded together). Every file carries provenance (command line, git revision, seed, schema
-version) and the label names, sigma and training metrics.
+``drake_cert/data/models`` by default. A classifier file holds its weights (kind
+"classifier"); an end-to-end regressor file holds its full one-output network (kind
+"regressor_net"); a head regressor file holds its head and the SHA-256 of the classifier
+file whose features it uses (kind "regressor"; both are loaded together). Every file carries
+provenance (command line, git revision, seed, schema version) and the label names, sigma and
+training metrics.
 """
 
 from __future__ import annotations
@@ -154,11 +158,14 @@ def file_sha256(path: str | Path) -> str:
 def save_model(model: nn.Module, path: str | Path, *, meta: dict) -> Path:
     """Write a classifier or regressor atomically with ``meta`` (provenance, labels, metrics).
 
-    A regressor's meta must name its classifier file (``classifier_file``, relative to the
-    regressor's folder) and its SHA-256 (``classifier_sha256``); only the head is stored.
+    A :class:`SmallResNet` with one output is stored whole as kind "regressor_net" (an
+    end-to-end regressor, output N/rad). A head regressor's meta must name its classifier
+    file (``classifier_file``, relative to the regressor's folder) and its SHA-256
+    (``classifier_sha256``); only the head is stored.
     """
-    if isinstance(model, SmallResNet):
-        payload = {"kind": "classifier", "num_classes": model.num_classes,
+    if isinstance(model, SmallResNet):  # one output: an end-to-end stiffness regressor
+        kind = "regressor_net" if model.num_classes == 1 else "classifier"
+        payload = {"kind": kind, "num_classes": model.num_classes,
                    "width": model.width,
                    "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()}}
     elif isinstance(model, StiffnessRegressor):
@@ -193,13 +200,15 @@ def read_model_file(path: str | Path) -> dict:
 
 
 def load_model_file(path: str | Path) -> nn.Module:
-    """Load a model file (classifier, or regressor with its classifier) in eval mode.
+    """Load a model file in eval mode: a classifier ([B, K] logits), an end-to-end regressor
+    (one-output :class:`SmallResNet`, [B, 1] N/rad) or a head regressor with its classifier
+    (:class:`StiffnessRegressor`, [B] N/rad).
 
     The model's ``meta`` dict is attached as ``model.meta``.
     """
     path = Path(path)
     payload = read_model_file(path)
-    if payload["kind"] == "classifier":
+    if payload["kind"] in ("classifier", "regressor_net"):
         model = SmallResNet(payload["num_classes"], width=payload["width"])
         model.load_state_dict(payload["state_dict"])
     elif payload["kind"] == "regressor":

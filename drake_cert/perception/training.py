@@ -7,9 +7,11 @@ smoothing noise). The data order, flips and noise of epoch e come from a generat
 ``(seed, e)``, so a run resumed from its per-epoch checkpoint gives the same weights as an
 uninterrupted run.
 
-Regressor (paper: ResNet features + linear SVR): the classifier's frozen features of
-noise-augmented frames at the same sigma, and a ridge least-squares fit to the frames' true
-stiffness (N/rad).
+Regressor (paper: ResNet features + linear SVR): by default the whole network trained end to
+end under the same noise (:func:`train_regressor_end_to_end`, backbone initialised from the
+classifier at the same sigma); the older option is the classifier's frozen features of
+noise-augmented frames and a ridge least-squares fit to the frames' true stiffness (N/rad)
+(:func:`fit_regressor`).
 """
 
 from __future__ import annotations
@@ -259,9 +261,16 @@ def evaluate_accuracy(model: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
 
 def evaluate_mse(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
                  seed: int = 0) -> float:
-    """Mean squared error of predicted vs true stiffness, in (N/rad)^2."""
-    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double()
+    """Mean squared error of predicted vs true stiffness, in (N/rad)^2 (outputs [B] or [B, 1])."""
+    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double().reshape(-1)
     return float(((pred - frames.stiffness_n_per_rad.double()) ** 2).mean())
+
+
+def evaluate_mae(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
+                 seed: int = 0) -> float:
+    """Mean absolute error of predicted vs true stiffness, in N/rad (outputs [B] or [B, 1])."""
+    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double().reshape(-1)
+    return float((pred - frames.stiffness_n_per_rad.double()).abs().mean())
 
 
 def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
