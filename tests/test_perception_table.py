@@ -94,3 +94,21 @@ def test_bad_budgets_are_a_config_error():
 
     with pytest.raises(ConfigError, match="budgets"):
         dataclasses.replace(TINY, budgets=(0.0,)).validate()
+
+
+def test_a_stored_cell_made_with_other_settings_is_recomputed(tiny_cells, tmp_path):
+    import json
+    import shutil
+
+    store, cells = tiny_cells
+    copy = CellStore(tmp_path / "copy")
+    shutil.copytree(store.root, copy.root)
+    key = cell_key("classify", "f", "sa", 0.25)
+    path = copy.path("carla-like", key)
+    cell = json.loads(path.read_text())
+    cell["settings"]["n"] = 10_000
+    path.write_text(json.dumps(cell))
+    computed = []
+    again = run_preset("carla-like", TINY, load_conditions(), copy, log=computed.append)
+    assert [m.split(":")[0] for m in computed] == [f"carla-like {key}"]
+    assert again[key]["records"] == cells[key]["records"]

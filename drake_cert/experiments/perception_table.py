@@ -18,7 +18,8 @@ Every number comes from :func:`certify_classifier` / :func:`certify_regressor`, 
 ``drake-cert certify`` runs, with the model in the stated precision. Work shared between cells
 is computed once and is identical to what each cell would compute alone (same seed streams):
 the conformal calibrations and the clean certificates of g. Each cell is written atomically as
-JSON as soon as it is done, so an interrupted run resumes with the next cell.
+JSON as soon as it is done, so an interrupted run resumes with the next cell; a stored cell
+is reused only if it was made with the same settings and the same model file (SHA-256).
 """
 
 from __future__ import annotations
@@ -85,6 +86,13 @@ class TableSettings:
             raise ConfigError(f"tasks {self.tasks} must be among classify, regress")
         self.certify("carla-like", "classify", self.sigma, "none", self.budgets[0]).validate()
 
+    def identity(self) -> dict:
+        """What a stored cell must have been made with to be reused (all but ``tasks``)."""
+        d = dataclasses.asdict(self)
+        d.pop("tasks")
+        d["budgets"] = list(d["budgets"])
+        return d
+
     def certify(self, preset: str, task: str, sigma: float, attack: str,
                 eps: float) -> CertifySettings:
         """The :class:`CertifySettings` of one cell (what ``drake-cert certify`` would use)."""
@@ -141,13 +149,24 @@ def run_preset(preset: str, ts: TableSettings, table: ConditionsTable, store: Ce
     bar = progress or (lambda desc: None)
     out: dict[str, dict] = {}
     test = None
+    identity = ts.identity()
+
+    def stored(task: str, model_name: str, sigma: float, attack: str, eps: float) -> dict | None:
+        """The stored cell, if made with these settings and the model file as it is now."""
+        cell = store.get(preset, cell_key(task, model_name, attack, eps))
+        if cell is None or cell.get("settings") != identity:
+            return None
+        if cell.get("model_sha256") != file_sha256(model_path(preset, task, sigma, models)):
+            return None
+        return cell
+
     for task in ts.tasks:
-        todo = [c for c in ts.cells(task) if store.get(preset, cell_key(task, c[0], c[2], c[3]))
-                is None]
-        for model_name, _, attack, eps in ts.cells(task):
-            key = cell_key(task, model_name, attack, eps)
-            if (cell := store.get(preset, key)) is not None:
-                out[key] = cell
+        todo = []
+        for model_name, sigma, attack, eps in ts.cells(task):
+            if (cell := stored(task, model_name, sigma, attack, eps)) is not None:
+                out[cell_key(task, model_name, attack, eps)] = cell
+            else:
+                todo.append((model_name, sigma, attack, eps))
         if not todo:
             continue
         shared: dict = {"clean_cache": {}}
@@ -186,7 +205,7 @@ def run_preset(preset: str, ts: TableSettings, table: ConditionsTable, store: Ce
                     bar(f"{preset} {key}"), conformal=conformal)
             cell = {"preset": preset, "task": task, "model": model_name, "sigma": sigma,
                     "attack": attack, "eps": eps, "summary": summary, "records": records,
-                    "seconds": time.perf_counter() - start,
+                    "seconds": time.perf_counter() - start, "settings": identity,
                     "model_sha256": file_sha256(model_path(preset, task, sigma, models))}
             store.put(preset, key, cell)
             out[key] = json.loads(json.dumps(json_safe(cell)))
