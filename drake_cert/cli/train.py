@@ -110,7 +110,7 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
 
     cmd = ["drake-cert", "train", "--preset", preset, "--task", task, "--sigma", sigma_tag(sigma)]
     head = task == "regress" and getattr(args, "regressor", "net") == "head"
-    if task == "regress" and head:
+    if head:
         cmd += ["--regressor", "head"]
     if args.epochs is not None and not head:
         cmd += ["--epochs", str(args.epochs)]

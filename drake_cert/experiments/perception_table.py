@@ -184,25 +184,23 @@ def run_preset(preset: str, ts: TableSettings, table: ConditionsTable, store: Ce
             frames = (split.images[idx], split.labels[idx], split.stiffness_n_per_rad[idx])
             settings = ts.certify(preset, task, sigma, attack, eps)
             start = time.perf_counter()
+            calibration = None
+            if sigma > 0:  # one conformal calibration per preset and task, shared by its cells
+                if "calibration" not in shared:
+                    calibrate = (_classification_calibration if task == "classify"
+                                 else _regression_calibration)
+                    shared["calibration"] = calibrate(model, preset, settings, table, size,
+                                                      bar(f"{preset} calibrate {task}"))
+                calibration = shared["calibration"]
             if task == "classify":
-                robust = None
-                if sigma > 0:
-                    robust = shared.get("robust") or _classification_calibration(
-                        model, preset, settings, table, size, bar(f"{preset} calibrate g"))
-                    shared["robust"] = robust
                 records, summary = certify_classifier(
                     model, *frames, list(split.label_names), table, settings,
-                    bar(f"{preset} {key}"), robust=robust,
+                    bar(f"{preset} {key}"), robust=calibration,
                     clean_cache=shared["clean_cache"] if sigma > 0 else None)
             else:
-                conformal = None
-                if sigma > 0:
-                    conformal = shared.get("conformal") or _regression_calibration(
-                        model, preset, settings, table, size, bar(f"{preset} calibrate h"))
-                    shared["conformal"] = conformal
                 records, summary = certify_regressor(
                     model, *frames, None, table.envelope(preset), settings,
-                    bar(f"{preset} {key}"), conformal=conformal)
+                    bar(f"{preset} {key}"), conformal=calibration)
             cell = {"preset": preset, "task": task, "model": model_name, "sigma": sigma,
                     "attack": attack, "eps": eps, "summary": summary, "records": records,
                     "seconds": time.perf_counter() - start, "settings": identity,
