@@ -115,3 +115,47 @@ def test_reproduce_runs_g_through_the_conformal_interval_when_asked():
     safe_set = recompute_frame(dataclasses.replace(config, interval="safe_set"), "carla-like", 0)
     assert any((r["interval_lo"], r["interval_hi"]) != tuple(envelope)
                for r in safe_set if r["pipeline"] == "g")
+
+
+class CountingExecutor:
+    """The in-process executor, counting the tasks it runs."""
+
+    def __init__(self):
+        from drake_cert.experiments.executors import LocalExecutor
+
+        self.inner, self.ran = LocalExecutor(), 0
+
+    def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
+        def counted(index, result):
+            self.ran += 1
+            if on_result is not None:
+                on_result(index, result)
+
+        return self.inner.map(make_worker, tasks, progress, on_result=counted, stop=stop)
+
+
+def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tmp_path):
+    """Stop after the first frame, rerun: only the second frame (and no calibration) is
+    computed, and the rows equal those of the uninterrupted run."""
+    import dataclasses
+
+    from drake_cert.experiments.reproduce import RunStore, run_reproduction
+
+    config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",))
+    store = RunStore(tmp_path / "store")
+    first = CountingExecutor()
+    rows = run_reproduction(config, first, store=store, stop=lambda: first.ran >= 4)
+    assert {r["position"] for r in rows} == {0}  # 3 betas + 1 frame, then stopped
+    again = CountingExecutor()
+    rows = run_reproduction(config, again, store=store)
+    assert again.ran == 1
+    full = [r for r in read_csv(quick_local / "frames.csv") if r["preset"] == "rtk-like"]
+    assert len(rows) == len(full)
+    for a, f in zip(rows, full, strict=True):
+        assert (a["position"], a["pipeline"], a["attack"]) == (int(f["position"]),
+                                                              f["pipeline"], f["attack"])
+        assert f"{a['velocity_mps']:.6g}" == f["velocity_mps"]
+        assert f"{a['interval_hi']:.6g}" == f["interval_hi"]
+    # A store made with other settings is not reused: nothing stored matches n = 300.
+    other = dataclasses.replace(config, n=300)
+    assert run_reproduction(other, CountingExecutor(), store=store, stop=lambda: True) == []

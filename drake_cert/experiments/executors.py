@@ -4,6 +4,9 @@ An executor maps a worker over tasks and returns the results in task order. The 
 built once per process (``make_worker()``; it loads models and designs once) and called as
 ``worker(task)``. Results never depend on the executor or the number of workers: every task
 carries its own seeds, and the worker holds no state that changes its answers (caches only).
+``on_result(index, result)`` sees each result as it arrives (in the driver: a caller stores
+it, so an interrupted run keeps what it finished); once ``stop()`` returns True no new task
+starts, and the tasks never started come back as None.
 """
 
 from __future__ import annotations
@@ -19,20 +22,32 @@ EXECUTORS = ("local", "ray")
 
 class Executor(Protocol):
     def map(self, make_worker: Callable[[], Callable[[Any], Any]], tasks: Sequence[Any],
-            progress: Callable[[int], None] | None = None) -> list[Any]:
+            progress: Callable[[int], None] | None = None,
+            on_result: Callable[[int, Any], None] | None = None,
+            stop: Callable[[], bool] | None = None) -> list[Any]:
         """Results of ``worker(task)`` for every task, in task order; ``progress(1)`` per task."""
+
+
+def _report(index, result, progress, on_result) -> None:
+    if on_result is not None:
+        on_result(index, result)
+    if progress is not None:
+        progress(1)
 
 
 class LocalExecutor:
     """Runs every task in this process, one after another."""
 
-    def map(self, make_worker, tasks, progress=None):
+    def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
+        results: list[Any] = [None] * len(tasks)
+        if not tasks:
+            return results
         worker = make_worker()
-        results = []
-        for task in tasks:
-            results.append(worker(task))
-            if progress is not None:
-                progress(1)
+        for index, task in enumerate(tasks):
+            if stop is not None and stop():
+                break
+            results[index] = worker(task)
+            _report(index, results[index], progress, on_result)
         return results
 
 
@@ -48,7 +63,9 @@ class RayExecutor:
             raise ConfigError(f"workers = {workers} must be >= 1")
         self.workers, self.address = int(workers), address
 
-    def map(self, make_worker, tasks, progress=None):
+    def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
+        if not tasks:
+            return []
         try:
             import ray
         except ImportError:
@@ -70,19 +87,21 @@ class RayExecutor:
             pending = {}
             results: list[Any] = [None] * len(tasks)
             next_task = 0
-            for actor in actors:  # one task in flight per actor
-                if next_task < len(tasks):
+
+            def submit(actor) -> None:
+                nonlocal next_task
+                if next_task < len(tasks) and not (stop is not None and stop()):
                     pending[actor.run.remote(tasks[next_task])] = (next_task, actor)
                     next_task += 1
+
+            for actor in actors:  # one task in flight per actor
+                submit(actor)
             while pending:
                 done, _ = ray.wait(list(pending), num_returns=1)
                 index, actor = pending.pop(done[0])
                 results[index] = ray.get(done[0])
-                if progress is not None:
-                    progress(1)
-                if next_task < len(tasks):
-                    pending[actor.run.remote(tasks[next_task])] = (next_task, actor)
-                    next_task += 1
+                _report(index, results[index], progress, on_result)
+                submit(actor)
             return results
         finally:
             if started_here:

@@ -58,7 +58,7 @@ class ReproduceConfig:
     n0: int = 100
     n: int = 10_000
     alpha: float = 0.001
-    batch_size: int = 1000
+    batch_size: int = 250  # noisy copies per forward pass (larger batches page-fault: slower)
     attack_steps: int = 20
     attack_noise_draws: int = 8
     regression: bool = True
@@ -69,6 +69,7 @@ class ReproduceConfig:
     interval: str = "safe_set"  # g's interval: "safe_set" (paper) or "conformal" (DESIGN 3)
     conformal_per_class: int = 150  # robust conformal calibration frames per label (>= 124)
     conformal_n: int = 500  # samples per conformal calibration frame
+    precision: str = "bf16"  # model arithmetic for attacks, certificates and calibration alike
     seed: int = 0
 
     @staticmethod
@@ -102,6 +103,8 @@ class ReproduceConfig:
         for name in ("conformal_per_class", "conformal_n"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
+        if self.precision not in ("fp32", "bf16"):
+            raise ConfigError(f"precision {self.precision!r} is not 'fp32' or 'bf16'")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
 
@@ -176,18 +179,57 @@ def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
     return calib.beta
 
 
-def calibration_betas(config: ReproduceConfig) -> dict:
-    """Every (preset, sigma) beta of the run, computed once (before the frames are spread)."""
-    import torch
-
+def run_model(config: ReproduceConfig, preset: str, task: str, sigma: float):
+    """The shipped model of (preset, task, sigma) in the run's precision: the one module that
+    the run's attacks, certificates and calibrations all evaluate."""
+    from drake_cert.certification.sampler import with_precision
     from drake_cert.perception.models import load_model
 
-    torch.set_num_threads(1)
+    return with_precision(load_model(preset, task, sigma), config.precision)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationTask:
+    preset: str
+    sigma: float
+
+
+class CalibrationWorker:
+    """Computes the h pipeline's beta for one (preset, sigma) (an executor worker)."""
+
+    def __init__(self, config: ReproduceConfig):
+        import torch
+
+        torch.set_num_threads(1)
+        self.config, self.conditions = config, load_conditions()
+
+    def __call__(self, task: CalibrationTask) -> float:
+        model = run_model(self.config, task.preset, "regress", task.sigma)
+        return calibration_beta(self.config, task.preset, task.sigma, model, self.conditions)
+
+
+def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | None = None,
+                      identity: str = "", progress: Callable[[int], None] | None = None) -> dict:
+    """Every (preset, sigma) beta of the run, spread over ``executor`` before the frames (read
+    back from ``store`` when it holds them under ``identity``)."""
+    from drake_cert.experiments.executors import LocalExecutor
+
     if not config.regression:
         return {}
-    conditions = load_conditions()
-    return {(p, s): calibration_beta(config, p, s, load_model(p, "regress", s), conditions)
-            for p in config.presets for s in config.sigmas}
+    pairs = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
+    betas = store.betas(identity) if store is not None else {}
+    todo = [t for t in pairs if (t.preset, t.sigma) not in betas]
+
+    def keep(index: int, beta: float) -> None:
+        betas[(todo[index].preset, todo[index].sigma)] = beta
+        if store is not None:
+            store.put_betas(identity, betas)
+
+    if progress is not None:
+        progress(len(pairs) - len(todo))
+    (executor or LocalExecutor()).map(lambda: CalibrationWorker(config), todo, progress,
+                                      on_result=keep)
+    return {(t.preset, t.sigma): betas[(t.preset, t.sigma)] for t in pairs}
 
 
 def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> dict:
@@ -199,7 +241,6 @@ def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> 
     from drake_cert.certification.classifier import SmoothedClassifier
     from drake_cert.certification.conformal import calibrate_robust_conformal
     from drake_cert.perception.datasets import load_split
-    from drake_cert.perception.models import load_model
 
     if config.interval != "conformal":
         return {}
@@ -216,7 +257,7 @@ def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> 
         for s_idx, sigma in enumerate(sigmas):
             if only is not None and (preset, sigma) not in only:
                 continue
-            classifier = SmoothedClassifier(load_model(preset, "classify", sigma),
+            classifier = SmoothedClassifier(run_model(config, preset, "classify", sigma),
                                             len(cal.label_names), sigma)
             out[(preset, sigma)] = calibrate_robust_conformal(
                 classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
@@ -250,11 +291,9 @@ class FrameWorker:
 
     # ------------------------------------------------------------------ loading (cached)
     def model(self, preset: str, task: str, sigma: float):
-        from drake_cert.perception.models import load_model
-
         key = (preset, task, sigma)
         if key not in self._models:
-            self._models[key] = load_model(preset, task, sigma)
+            self._models[key] = run_model(self.config, preset, task, sigma)
         return self._models[key]
 
     def frames(self, preset: str):
@@ -380,24 +419,154 @@ class FrameWorker:
 
 
 def tasks_for(config: ReproduceConfig) -> list[FrameTask]:
-    return [FrameTask(p, k) for p in config.presets for k in range(config.frames)]
+    """Every frame of the run, frame-major (all presets' frame 0, then frame 1, ...), so that a
+    run stopped early holds about as many frames of each preset."""
+    return [FrameTask(p, k) for k in range(config.frames) for p in config.presets]
+
+
+def model_files(config: ReproduceConfig) -> list[tuple[str, str, float]]:
+    """(preset, task, sigma) of every model the run evaluates."""
+    sigmas = sorted({0.0, *config.sigmas, config.sweep_sigma})
+    out = [(p, "classify", s) for p in config.presets for s in sigmas]
+    if config.regression:
+        out += [(p, "regress", s) for p in config.presets for s in sorted({0.0, *config.sigmas})]
+    return out
+
+
+def run_identity(config: ReproduceConfig, designs: list) -> str:
+    """What a stored frame must have been made with to be reused: every setting but the
+    frame count (the first k frames of a preset do not depend on it), the SHA-256 of every
+    model file, of the data tables (vehicle, settings, conditions) and of the design table
+    (rounded to 6 significant digits). A SHA-256 hex digest."""
+    import hashlib
+    import json
+    from pathlib import Path
+
+    from drake_cert.perception.models import file_sha256, model_path
+
+    settings = dataclasses.asdict(config)
+    settings.pop("frames")
+
+    def rounded(x):
+        if isinstance(x, float):
+            return float(f"{x:.6g}")
+        if isinstance(x, dict):
+            return {k: rounded(v) for k, v in sorted(x.items())}
+        if isinstance(x, list | tuple):
+            return [rounded(v) for v in x]
+        return x
+
+    data = Path(__file__).resolve().parents[1] / "data"
+    blob = dict(
+        settings=rounded(settings),
+        models={f"{p}/{t}/{s}": file_sha256(model_path(p, t, s))
+                for p, t, s in model_files(config)},
+        data={f.name: file_sha256(f) for f in sorted(data.glob("*.yaml"))},
+        designs=rounded([dataclasses.asdict(d) for d in designs]),
+    )
+    text = json.dumps(blob, sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()
+
+
+class RunStore:
+    """What a reproduction has finished, under ``root``: one JSON file per frame (its rows) and
+    ``calibration.json`` (the h betas), each written atomically as it arrives and reused only
+    by a run with the same :func:`run_identity`. A stopped run resumes where it stopped."""
+
+    def __init__(self, root):
+        from pathlib import Path
+
+        from drake_cert.io import git_revision
+
+        self.root = Path(root)
+        self.revision = git_revision()
+
+    def _frame_path(self, task: FrameTask):
+        return self.root / task.preset / f"frame-{task.position:04d}.json"
+
+    def _read(self, path, identity: str):
+        import json
+
+        if not path.exists():
+            return None
+        try:
+            stored = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None  # unreadable: recompute
+        return stored if stored.get("identity") == identity else None
+
+    def frame(self, identity: str, task: FrameTask) -> list[dict] | None:
+        stored = self._read(self._frame_path(task), identity)
+        return None if stored is None else stored["rows"]
+
+    def frame_revision(self, identity: str, task: FrameTask) -> str | None:
+        stored = self._read(self._frame_path(task), identity)
+        return None if stored is None else stored.get("git_revision")
+
+    def put_frame(self, identity: str, task: FrameTask, rows: list[dict]) -> None:
+        self._write(self._frame_path(task), identity, rows=rows)
+
+    def betas(self, identity: str) -> dict:
+        stored = self._read(self.root / "calibration.json", identity)
+        if stored is None:
+            return {}
+        return {(p, float(s)): float(b) for p, s, b in stored["betas"]}
+
+    def put_betas(self, identity: str, betas: dict) -> None:
+        self._write(self.root / "calibration.json", identity,
+                    betas=[[p, s, b] for (p, s), b in sorted(betas.items())])
+
+    def _write(self, path, identity: str, **content) -> None:
+        import json
+
+        from drake_cert.io import atomic_write_text
+
+        text = json.dumps(dict(identity=identity, git_revision=self.revision, **content),
+                          separators=(",", ":"))
+        atomic_write_text(path, text + "\n")
 
 
 def run_reproduction(config: ReproduceConfig, executor=None,
-                     progress: Callable[[int], None] | None = None) -> list[dict]:
-    """Every per-frame row of the reproduction, in (preset, frame, cell) order."""
+                     progress: Callable[[str, int], Callable[[int], None]] | None = None,
+                     store: RunStore | None = None,
+                     stop: Callable[[], bool] | None = None) -> list[dict]:
+    """Every per-frame row of the reproduction, in (preset, frame, cell) order.
+
+    ``progress(desc, total)`` returns the update callable of one phase's progress bar.
+    With a ``store``, finished frames and betas are read back from it and new ones written to
+    it as they arrive; once ``stop()`` is True no new frame starts and the rows of the frames
+    finished so far come back (fewer than ``frames`` per preset: the tables count them).
+    """
     from drake_cert.experiments.executors import LocalExecutor
+    from synthesis.table import synthesize_table
 
     config.validate()
     executor = executor or LocalExecutor()
-    from synthesis.table import synthesize_table
-
+    bar = progress or (lambda desc, total: None)
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
-    betas = calibration_betas(config)
+    identity = run_identity(config, designs) if store is not None else ""
+    pairs = len(config.presets) * len(config.sigmas) if config.regression else 0
+    betas = calibration_betas(config, executor, store, identity,
+                              bar("calibration (h)", pairs) if pairs else None)
     conformal = conformal_calibrations(config)
-    results = executor.map(lambda: FrameWorker(config, betas, designs, conformal),
-                           tasks_for(config), progress)
-    return [row for rows in results for row in rows]
+    tasks = tasks_for(config)
+    done = {t: store.frame(identity, t) for t in tasks} if store is not None else {}
+    todo = [t for t in tasks if done.get(t) is None]
+
+    def keep(index: int, rows: list[dict]) -> None:
+        done[todo[index]] = rows
+        if store is not None:
+            store.put_frame(identity, todo[index], rows)
+
+    update = bar("frames", len(tasks))
+    if update is not None:
+        update(len(tasks) - len(todo))
+    executor.map(lambda: FrameWorker(config, betas, designs, conformal), todo, update,
+                 on_result=keep, stop=stop)
+    order = {p: i for i, p in enumerate(config.presets)}
+    finished = sorted((t for t in tasks if done.get(t) is not None),
+                      key=lambda t: (order[t.preset], t.position))
+    return [row for t in finished for row in done[t]]
 
 
 def recompute_frame(config: ReproduceConfig, preset: str, position: int) -> list[dict]:

@@ -152,8 +152,12 @@ def markdown(summary: list[dict], config, conditions) -> str:
     """All tables as Markdown; the paper's number in parentheses where it gives one."""
     presets = list(config.presets)
     eps = config.eps
+    counts = sorted({int(s["frames"]) for s in summary})
+    frames = (f"{counts[0]}" if len(counts) == 1 else f"{counts[0]}-{counts[-1]}")
+    partial = (f" (a partial run: {config.frames} planned)" if counts[-1] < config.frames
+               else "")
     lines = [f"Budgets eps are L2 in [0, 1] pixel space; main tables at eps = {eps}. "
-             f"{config.frames} test frames per preset and cell; n0 = {config.n0}, "
+             f"{frames} test frames per preset and cell{partial}; n0 = {config.n0}, "
              f"n = {config.n}, alpha = {config.alpha}; root seed {config.seed}. "
              "Ours (paper's) where the paper gives a number. Instability: % of episodes that "
              "left the lane on the Fiala plant (the paper's 200.00 is not a share).", ""]
