@@ -159,3 +159,17 @@ def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tm
     # A store made with other settings is not reused: nothing stored matches n = 300.
     other = dataclasses.replace(config, n=300)
     assert run_reproduction(other, CountingExecutor(), store=store, stop=lambda: True) == []
+
+
+def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(quick_local,
+                                                                               tmp_path, capsys):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(quick_local, copy)
+    (copy / "results.csv").unlink()
+    assert main([*QUICK_ARGS, "--out", str(copy), "--from-store"]) == 0
+    assert (copy / "results.csv").read_text() == (quick_local / "results.csv").read_text()
+    assert "g inside its certificates" in (copy / "claims.md").read_text()
+    assert main([*QUICK_ARGS, "--out", str(tmp_path / "empty"), "--from-store"]) == 2
+    assert "holds no frame" in capsys.readouterr().err

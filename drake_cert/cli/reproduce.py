@@ -57,6 +57,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--budget-min", type=float, default=None,
                         help="start no new frame after this many minutes; write the tables of "
                              "the frames finished so far (rerun to resume)")
+    parser.add_argument("--from-store", action="store_true",
+                        help="compute nothing: write the tables of the frames stored under "
+                             "--out/store (by a run with the same settings)")
     parser.add_argument("--fresh", action="store_true",
                         help="ignore the frames stored under --out/store and recompute them")
     parser.add_argument("--no-plots", action="store_true", help="skip the PNG plots")
@@ -132,6 +135,10 @@ def run(args) -> int:
     executor = make_executor(args.executor, args.workers, args.address)
     start = time.perf_counter()
     deadline = None if args.budget_min is None else start + 60.0 * args.budget_min
+    if args.from_store and args.fresh:
+        raise ConfigError("--from-store and --fresh exclude each other")
+    stop = (lambda: True) if args.from_store else None if deadline is None \
+        else (lambda: time.perf_counter() > deadline)
     bars = []
 
     def progress(desc, total):
@@ -140,8 +147,7 @@ def run(args) -> int:
 
     try:
         rows = run_reproduction(config, executor, progress=progress, store=RunStore(out / "store"),
-                                stop=None if deadline is None
-                                else lambda: time.perf_counter() > deadline)
+                                stop=stop)
     finally:
         for b in bars:
             b.close()
@@ -149,6 +155,8 @@ def run(args) -> int:
     done = {p: len({r["position"] for r in rows if r["preset"] == p}) for p in config.presets}
     complete = all(k == config.frames for k in done.values())
     if not rows:
+        if args.from_store:
+            raise ConfigError(f"{out / 'store'} holds no frame made with these settings")
         print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "frames_done": done,
                           "complete": False}))
         return 0

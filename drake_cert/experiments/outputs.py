@@ -3,6 +3,7 @@
 ``results.csv``   one row per cell (see :mod:`drake_cert.experiments.tables`)
 ``frames.csv``    one row per frame and cell, with the frame's seed (recomputable alone)
 ``tables.md``     the paper's tables, ours beside the paper's numbers
+``claims.md``     the paper's claims checked on the frames (:mod:`.claims`; also ``claims.json``)
 ``meta.json``     command line, git revision, root seed, configuration, wall time
 ``sweep.png``     share certified, velocity and instability of f and g against eps
 ``radii.png``     certified-radius distributions of g per preset and sigma
@@ -19,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from drake_cert.experiments import tables
+from drake_cert.experiments.perception_eval import json_safe
 from drake_cert.io import atomic_write_bytes, atomic_write_text
 
 FRAME_COLUMNS = ("preset", "frame", "position", "seed", "true_label", "stiffness_n_per_rad",
@@ -31,11 +33,16 @@ FRAME_COLUMNS = ("preset", "frame", "position", "seed", "true_label", "stiffness
 def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], config,
                   conditions, meta: dict, plots: bool = True) -> list[Path]:
     """Write every output file under ``out_dir``; returns their paths."""
+    from drake_cert.experiments import claims
+
     out = Path(out_dir)
+    checked = claims.check_claims(rows, config.eps)
     written = [
         atomic_write_text(out / "results.csv", tables.to_csv(summary)),
         atomic_write_text(out / "frames.csv", tables.to_csv(rows, FRAME_COLUMNS)),
         atomic_write_text(out / "tables.md", tables.markdown(summary, config, conditions)),
+        atomic_write_text(out / "claims.md", claims.markdown(checked, config.eps)),
+        atomic_write_text(out / "claims.json", json.dumps(json_safe(checked), indent=1) + "\n"),
         atomic_write_text(out / "meta.json", json.dumps(
             dict(meta, config=dataclasses.asdict(config)), indent=2) + "\n"),
     ]

@@ -545,13 +545,15 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     bar = progress or (lambda desc, total: None)
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
     identity = run_identity(config, designs) if store is not None else ""
-    pairs = len(config.presets) * len(config.sigmas) if config.regression else 0
-    betas = calibration_betas(config, executor, store, identity,
-                              bar("calibration (h)", pairs) if pairs else None)
-    conformal = conformal_calibrations(config)
     tasks = tasks_for(config)
     done = {t: store.frame(identity, t) for t in tasks} if store is not None else {}
     todo = [t for t in tasks if done.get(t) is None]
+    if stop is not None and stop():
+        todo = []  # nothing will run: no calibration either
+    pairs = len(config.presets) * len(config.sigmas) if config.regression and todo else 0
+    betas = calibration_betas(config, executor, store, identity,
+                              bar("calibration (h)", pairs) if pairs else None) if todo else {}
+    conformal = conformal_calibrations(config) if todo else {}
 
     def keep(index: int, rows: list[dict]) -> None:
         done[todo[index]] = rows

@@ -1,0 +1,127 @@
+"""The paper's claims, checked on a reproduction's per-frame rows (issue 8's Done-when).
+
+Per preset, over the frames the run holds:
+1. the non-robust pipeline f is unstable under the safety attack (SA): share of f's episodes
+   that left the lane, per budget;
+2. f loses speed under the efficiency attack (EA): mean velocity per budget against clean;
+3. the certified pipeline g keeps 0% instability inside its certificates: among g's attacked
+   episodes whose run-time interval was certified at the attack's budget (``certified``), how
+   many left the lane, with a 95% Clopper-Pearson upper bound on that share; the departures
+   are listed frame by frame;
+4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
+
+Shares carry their 95% Clopper-Pearson interval (two-sided; the upper bound of claim 3 is
+the interval's upper end), counted over episodes, each a different (frame, cell).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+SPEED_KEPT = 0.8  # claim 4: the least share of g's clean speed kept under EA
+
+
+def _share(hits: int, total: int) -> dict:
+    from drake_cert.experiments.perception_eval import clopper_pearson_interval
+
+    if total == 0:
+        return dict(hits=0, total=0, pct=float("nan"), ci95_pct=[0.0, 100.0])
+    lo, hi = clopper_pearson_interval(hits, total)
+    return dict(hits=hits, total=total, pct=100.0 * hits / total,
+                ci95_pct=[100.0 * lo, 100.0 * hi])
+
+
+def _velocity(rows: list[dict]) -> float:
+    return float(np.mean([r["velocity_mps"] for r in rows])) if rows else float("nan")
+
+
+def check_claims(rows: list[dict], main_eps: float) -> dict:
+    """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`)."""
+    out = {}
+    for preset in dict.fromkeys(r["preset"] for r in rows):
+        mine = [r for r in rows if r["preset"] == preset]
+
+        def cell(pipeline, attack, eps=None, sigma=None, mine=mine):
+            return [r for r in mine if r["pipeline"] == pipeline and r["attack"] == attack
+                    and (eps is None or r["eps"] == eps) and (sigma is None or r["sigma"] == sigma)]
+
+        budgets = sorted({r["eps"] for r in mine if r["pipeline"] == "f" and r["attack"] != "none"})
+        f_clean = _velocity(cell("f", "none"))
+        f_sa = {e: _share(sum(r["left_lane"] for r in cell("f", "sa", e)), len(cell("f", "sa", e)))
+                for e in budgets}
+        f_ea = {e: _velocity(cell("f", "ea", e)) for e in budgets}
+        certified = [r for r in mine if r["pipeline"] == "g" and r["attack"] != "none"
+                     and r["certified"]]
+        departures = [dict(frame=r["frame"], true_label=r["true_label"], sigma=r["sigma"],
+                           attack=r["attack"], eps=r["eps"], predicted=r["predicted"],
+                           design=r["design_labels"], velocity_mps=r["velocity_mps"],
+                           interval_covers=r["interval_covers"])
+                      for r in certified if r["left_lane"]]
+        sigmas = sorted({r["sigma"] for r in mine if r["pipeline"] == "g"})
+        kept = {}
+        for s in sigmas:
+            clean, ea = _velocity(cell("g", "none", main_eps, s)), _velocity(
+                cell("g", "ea", main_eps, s))
+            kept[s] = dict(clean_mps=clean, ea_mps=ea, kept=ea / clean if clean > 0 else
+                           float("nan"))
+        out[preset] = dict(
+            frames=len({r["position"] for r in mine}),
+            f_clean_velocity_mps=f_clean,
+            f_sa_instability={str(e): v for e, v in f_sa.items()},
+            f_ea_velocity_mps={str(e): v for e, v in f_ea.items()},
+            g_inside_certificate=_share(len(departures), len(certified)),
+            g_departures_inside_certificate=departures,
+            g_ea_speed_kept={str(s): v for s, v in kept.items()},
+            holds=dict(
+                f_unstable_under_sa=any(v["hits"] > 0 for v in f_sa.values()),
+                f_slower_under_ea=any(v < f_clean for v in f_ea.values()),
+                g_zero_instability_inside_certificates=not departures,
+                g_keeps_80pct_speed_under_ea=all(v["kept"] >= SPEED_KEPT for v in kept.values()),
+            ))
+    return out
+
+
+def markdown(claims: dict, main_eps: float) -> str:
+    """The claims as Markdown: one table per claim, presets as columns."""
+    presets = list(claims)
+    head = "| | " + " | ".join(presets) + " |\n|---|" + "---|" * len(presets)
+
+    def pct(s):
+        return f"{s['hits']}/{s['total']} = {s['pct']:.1f}% [{s['ci95_pct'][0]:.1f}, " \
+               f"{s['ci95_pct'][1]:.1f}]" if s["total"] else "n/a"
+
+    def row(title, fn):
+        return f"| {title} | " + " | ".join(fn(claims[p]) for p in presets) + " |"
+
+    budgets = sorted({float(e) for c in claims.values() for e in c["f_sa_instability"]})
+    sigmas = sorted({float(s) for c in claims.values() for s in c["g_ea_speed_kept"]})
+    lines = ["Checked on the frames stated (episodes counted per frame and cell; shares with "
+             "their 95% Clopper-Pearson interval).", "", head,
+             row("frames per preset", lambda c: str(c["frames"])),
+             "", "**1. f is unstable under SA** (episodes that left the lane)", "", head]
+    lines += [row(f"eps = {e:g}", lambda c, e=e: pct(c["f_sa_instability"][str(e)]))
+              for e in budgets]
+    lines += ["", "**2. f loses speed under EA** (mean velocity, m/s)", "", head,
+              row("clean", lambda c: f"{c['f_clean_velocity_mps']:.2f}")]
+    lines += [row(f"EA eps = {e:g}", lambda c, e=e: f"{c['f_ea_velocity_mps'][str(e)]:.2f}")
+              for e in budgets]
+    lines += ["", "**3. g inside its certificates** (attacked episodes whose run-time interval "
+              "was certified at the attack's budget; departures / episodes)", "", head,
+              row("left the lane", lambda c: pct(c["g_inside_certificate"]))]
+    lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
+              f"(claim: >= {SPEED_KEPT:.0%})", "", head]
+    lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
+        c["g_ea_speed_kept"][str(s)]["ea_mps"], c["g_ea_speed_kept"][str(s)]["clean_mps"],
+        c["g_ea_speed_kept"][str(s)]["kept"])) for s in sigmas]
+    lines += ["", "**Holds?**", "", head]
+    for key in next(iter(claims.values()))["holds"]:
+        lines.append(row(key.replace("_", " "), lambda c, k=key: "yes" if c["holds"][k] else "NO"))
+    deps = [(p, d) for p in presets for d in claims[p]["g_departures_inside_certificate"]]
+    if deps:
+        lines += ["", "Departures of g inside its certificates (each a frame and cell):", "",
+                  "| preset | frame | true label | sigma | attack | eps | predicted | design | "
+                  "interval holds the true stiffness |", "|---|---|---|---|---|---|---|---|---|"]
+        lines += [f"| {p} | {d['frame']} | {d['true_label']} | {d['sigma']:g} | {d['attack']} | "
+                  f"{d['eps']:g} | {d['predicted']} | {d['design']} | {d['interval_covers']} |"
+                  for p, d in deps]
+    return "\n".join(lines) + "\n"

@@ -1,0 +1,42 @@
+"""The paper's claims checked on per-frame rows: each claim flips when the rows contradict it."""
+
+from drake_cert.experiments.claims import check_claims, markdown
+
+
+def row(pipeline, attack, eps, *, sigma=0.0, left=False, v=10.0, certified=False, position=0):
+    return dict(preset="p", position=position, frame=position, true_label="dry",
+                pipeline=pipeline, sigma=sigma, attack=attack, eps=eps, left_lane=left,
+                velocity_mps=v, certified=certified, predicted="dry", design_labels="dry",
+                interval_covers=True)
+
+
+def frame(position, *, f_left=True, g_left=False, g_ea_v=9.0):
+    return [row("f", "none", 0.25, v=10.0, position=position),
+            row("f", "sa", 0.25, left=f_left, position=position),
+            row("f", "ea", 0.25, v=7.0, position=position),
+            row("g", "none", 0.25, sigma=0.5, v=10.0, certified=True, position=position),
+            row("g", "sa", 0.25, sigma=0.5, left=g_left, certified=True, position=position),
+            row("g", "ea", 0.25, sigma=0.5, v=g_ea_v, certified=True, position=position)]
+
+
+def test_the_claims_hold_when_f_fails_and_g_holds():
+    c = check_claims(frame(0) + frame(1, f_left=False), 0.25)["p"]
+    assert c["frames"] == 2
+    assert c["f_sa_instability"]["0.25"]["hits"] == 1
+    assert c["f_sa_instability"]["0.25"]["pct"] == 50.0
+    assert c["f_ea_velocity_mps"]["0.25"] == 7.0 < c["f_clean_velocity_mps"]
+    assert c["g_inside_certificate"]["total"] == 4  # g's attacked certified episodes
+    assert c["g_ea_speed_kept"]["0.5"]["kept"] == 0.9
+    assert all(c["holds"].values())
+    assert "yes" in markdown({"p": c}, 0.25)
+
+
+def test_a_departure_inside_a_certificate_and_a_slow_g_break_the_claims():
+    c = check_claims(frame(0, g_left=True, g_ea_v=6.0) + frame(1), 0.25)["p"]
+    assert c["holds"]["g_zero_instability_inside_certificates"] is False
+    assert c["holds"]["g_keeps_80pct_speed_under_ea"] is False  # 7.5 / 10.0 m/s
+    assert c["g_inside_certificate"]["hits"] == 1
+    assert c["g_inside_certificate"]["ci95_pct"][1] > 50.0  # 1 of 4: a wide interval
+    assert len(c["g_departures_inside_certificate"]) == 1
+    text = markdown({"p": c}, 0.25)
+    assert "NO" in text and "Departures of g" in text
