@@ -38,5 +38,19 @@ def test_a_departure_inside_a_certificate_and_a_slow_g_break_the_claims():
     assert c["g_inside_certificate"]["hits"] == 1
     assert c["g_inside_certificate"]["ci95_pct"][1] > 50.0  # 1 of 4: a wide interval
     assert len(c["g_departures_inside_certificate"]) == 1
+    # g labels frame 0 right when clean ("dry"): the departure counts in the conditioned share too
+    assert c["g_inside_certificate_clean_right"]["hits"] == 1
     text = markdown({"p": c}, 0.25)
     assert "NO" in text and "Departures of g" in text
+
+
+def test_a_departure_on_a_frame_g_labels_wrong_when_clean_is_told_apart():
+    rows = frame(0, g_left=True) + frame(1)
+    for r in rows:
+        if r["position"] == 0 and r["pipeline"] == "g" and r["attack"] == "none":
+            r["predicted"] = "wet"
+    c = check_claims(rows, 0.25)["p"]
+    assert c["holds"]["g_zero_instability_inside_certificates"] is False
+    assert c["holds"]["g_zero_instability_inside_certificates_where_right_clean"] is True
+    assert c["g_inside_certificate_clean_right"]["total"] == 2  # frame 1's SA and EA
+    assert c["g_departures_inside_certificate"][0]["clean_prediction"] == "wet"

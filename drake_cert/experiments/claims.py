@@ -6,8 +6,9 @@ Per preset, over the frames the run holds:
 2. f loses speed under the efficiency attack (EA): mean velocity per budget against clean;
 3. the certified pipeline g keeps 0% instability inside its certificates: among g's attacked
    episodes whose run-time interval was certified at the attack's budget (``certified``), how
-   many left the lane, with a 95% Clopper-Pearson upper bound on that share; the departures
-   are listed frame by frame;
+   many left the lane, with a 95% Clopper-Pearson upper bound on that share, over all of them
+   and over those whose frame g labels right when clean (the safe-set interval's standing
+   assumption); the departures are listed frame by frame with g's clean label;
 4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
 
 Shares carry their 95% Clopper-Pearson interval (two-sided; the upper bound of claim 3 is
@@ -50,10 +51,17 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
         f_sa = {e: _share(sum(r["left_lane"] for r in cell("f", "sa", e)), len(cell("f", "sa", e)))
                 for e in budgets}
         f_ea = {e: _velocity(cell("f", "ea", e)) for e in budgets}
+        # g's label on the clean frame at each sigma (the main-budget clean cell where the
+        # sweep's eps = 0 cell repeats it)
+        clean_g = {(r["position"], r["sigma"]): r["predicted"]
+                   for r in sorted(cell("g", "none"), key=lambda r: r["eps"] == main_eps)}
         certified = [r for r in mine if r["pipeline"] == "g" and r["attack"] != "none"
                      and r["certified"]]
+        right = [r for r in certified
+                 if clean_g.get((r["position"], r["sigma"])) == r["true_label"]]
         departures = [dict(frame=r["frame"], true_label=r["true_label"], sigma=r["sigma"],
                            attack=r["attack"], eps=r["eps"], predicted=r["predicted"],
+                           clean_prediction=clean_g.get((r["position"], r["sigma"])),
                            design=r["design_labels"], velocity_mps=r["velocity_mps"],
                            interval_covers=r["interval_covers"])
                       for r in certified if r["left_lane"]]
@@ -70,12 +78,16 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
             f_sa_instability={str(e): v for e, v in f_sa.items()},
             f_ea_velocity_mps={str(e): v for e, v in f_ea.items()},
             g_inside_certificate=_share(len(departures), len(certified)),
+            g_inside_certificate_clean_right=_share(sum(r["left_lane"] for r in right),
+                                                    len(right)),
             g_departures_inside_certificate=departures,
             g_ea_speed_kept={str(s): v for s, v in kept.items()},
             holds=dict(
                 f_unstable_under_sa=any(v["hits"] > 0 for v in f_sa.values()),
                 f_slower_under_ea=any(v < f_clean for v in f_ea.values()),
                 g_zero_instability_inside_certificates=not departures,
+                g_zero_instability_inside_certificates_where_right_clean=not any(
+                    r["left_lane"] for r in right),
                 g_keeps_80pct_speed_under_ea=all(v["kept"] >= SPEED_KEPT for v in kept.values()),
             ))
     return out
@@ -107,7 +119,9 @@ def markdown(claims: dict, main_eps: float) -> str:
               for e in budgets]
     lines += ["", "**3. g inside its certificates** (attacked episodes whose run-time interval "
               "was certified at the attack's budget; departures / episodes)", "", head,
-              row("left the lane", lambda c: pct(c["g_inside_certificate"]))]
+              row("left the lane", lambda c: pct(c["g_inside_certificate"])),
+              row("... on frames g labels right when clean",
+                  lambda c: pct(c["g_inside_certificate_clean_right"]))]
     lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
               f"(claim: >= {SPEED_KEPT:.0%})", "", head]
     lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
@@ -119,9 +133,14 @@ def markdown(claims: dict, main_eps: float) -> str:
     deps = [(p, d) for p in presets for d in claims[p]["g_departures_inside_certificate"]]
     if deps:
         lines += ["", "Departures of g inside its certificates (each a frame and cell):", "",
-                  "| preset | frame | true label | sigma | attack | eps | predicted | design | "
-                  "interval holds the true stiffness |", "|---|---|---|---|---|---|---|---|---|"]
+                  "| preset | frame | true label | sigma | attack | eps | g's label (clean) | "
+                  "g's label (attacked) | design | interval holds the true stiffness |",
+                  "|---|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {p} | {d['frame']} | {d['true_label']} | {d['sigma']:g} | {d['attack']} | "
-                  f"{d['eps']:g} | {d['predicted']} | {d['design']} | {d['interval_covers']} |"
-                  for p, d in deps]
+                  f"{d['eps']:g} | {d['clean_prediction']} | {d['predicted']} | {d['design']} | "
+                  f"{d['interval_covers']} |" for p, d in deps]
+        lines += ["", "A certified label range holds on the whole eps-ball, the clean frame "
+                  "included: where g's clean label is already wrong, the certificate carries "
+                  "that error (the safe-set interval's standing assumption; the robust "
+                  "conformal interval, `--interval conformal`, does not rest on it)."]
     return "\n".join(lines) + "\n"
