@@ -142,7 +142,10 @@ def run(args) -> int:
     bars = []
 
     def progress(desc, total):
-        bars.append(tqdm(total=total, desc=desc, unit="task", file=sys.stderr, disable=None))
+        # On a terminal a live bar; in a log file (a long run in the background) a line a minute.
+        tty = sys.stderr.isatty()
+        bars.append(tqdm(total=total, desc=desc, unit="task", file=sys.stderr,
+                         mininterval=0.1 if tty else 60.0, ascii=not tty))
         return bars[-1].update
 
     try:

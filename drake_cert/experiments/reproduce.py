@@ -548,6 +548,7 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     tasks = tasks_for(config)
     done = {t: store.frame(identity, t) for t in tasks} if store is not None else {}
     todo = [t for t in tasks if done.get(t) is None]
+    stored = len(tasks) - len(todo)
     if stop is not None and stop():
         todo = []  # nothing will run: no calibration either
     pairs = len(config.presets) * len(config.sigmas) if config.regression and todo else 0
@@ -562,7 +563,7 @@ def run_reproduction(config: ReproduceConfig, executor=None,
 
     update = bar("frames", len(tasks))
     if update is not None:
-        update(len(tasks) - len(todo))
+        update(stored)
     executor.map(lambda: FrameWorker(config, betas, designs, conformal), todo, update,
                  on_result=keep, stop=stop)
     order = {p: i for i, p in enumerate(config.presets)}
