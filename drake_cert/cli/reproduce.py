@@ -133,6 +133,7 @@ def run(args) -> int:
     if args.fresh and (out / "store").exists():
         shutil.rmtree(out / "store")
     executor = make_executor(args.executor, args.workers, args.address)
+    started = provenance(seed=config.seed)  # the revision and time the run started with
     start = time.perf_counter()
     deadline = None if args.budget_min is None else start + 60.0 * args.budget_min
     if args.from_store and args.fresh:
@@ -164,7 +165,7 @@ def run(args) -> int:
                           "complete": False}))
         return 0
     runs = log_run(out / "store" / "runs.json", dict(
-        provenance(seed=config.seed), wall_s=round(wall, 1), executor=args.executor,
+        started, wall_s=round(wall, 1), executor=args.executor,
         workers=args.workers if args.executor == "ray" else 1, frames_done=done))
     summary = tables.summarize(rows, config.eps, config.seed)
     meta = dict(provenance(seed=config.seed), wall_s=round(wall, 1),
