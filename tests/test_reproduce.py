@@ -93,6 +93,12 @@ def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
     blocker.write_text("x")
     assert main(["reproduce", "--quick", "--out", str(blocker / "sub")]) == 2
     assert main(["reproduce", "--quick", "--frames", "0", "--out", str(tmp_path)]) == 2
+    store = tmp_path / "kept" / "store"
+    store.mkdir(parents=True)
+    assert main(["reproduce", "--quick", "--from-store", "--fresh", "--out",
+                 str(tmp_path / "kept")]) == 2
+    assert store.exists()  # refused before anything was deleted
+    assert main(["reproduce", "--quick", "--budget-min", "0", "--out", str(tmp_path)]) == 2
 
 
 def test_reproduce_runs_g_through_the_conformal_interval_when_asked():

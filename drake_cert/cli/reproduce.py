@@ -128,6 +128,8 @@ def run(args) -> int:
     config = build_config(args)
     if args.budget_min is not None and not args.budget_min > 0:
         raise ConfigError(f"--budget-min = {args.budget_min} must be a positive number")
+    if args.from_store and args.fresh:
+        raise ConfigError("--from-store and --fresh exclude each other")
     out = Path(args.out)
     check_writable(out / "results.csv", "--out")
     if args.fresh and (out / "store").exists():
@@ -136,8 +138,6 @@ def run(args) -> int:
     started = provenance(seed=config.seed)  # the revision and time the run started with
     start = time.perf_counter()
     deadline = None if args.budget_min is None else start + 60.0 * args.budget_min
-    if args.from_store and args.fresh:
-        raise ConfigError("--from-store and --fresh exclude each other")
     stop = (lambda: True) if args.from_store else None if deadline is None \
         else (lambda: time.perf_counter() > deadline)
     bars = []
