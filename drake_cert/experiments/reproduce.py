@@ -103,8 +103,10 @@ class ReproduceConfig:
         for name in ("conformal_per_class", "conformal_n"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
-        if self.precision not in ("fp32", "bf16"):
-            raise ConfigError(f"precision {self.precision!r} is not 'fp32' or 'bf16'")
+        from drake_cert.certification.sampler import PRECISIONS
+
+        if self.precision not in PRECISIONS:
+            raise ConfigError(f"precision {self.precision!r} is not one of {', '.join(PRECISIONS)}")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
 
@@ -499,10 +501,6 @@ class RunStore:
         stored = self._read(self._frame_path(task), identity)
         return None if stored is None else stored["rows"]
 
-    def frame_revision(self, identity: str, task: FrameTask) -> str | None:
-        stored = self._read(self._frame_path(task), identity)
-        return None if stored is None else stored.get("git_revision")
-
     def put_frame(self, identity: str, task: FrameTask, rows: list[dict]) -> None:
         self._write(self._frame_path(task), identity, rows=rows)
 
@@ -551,10 +549,12 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     stored = len(tasks) - len(todo)
     if stop is not None and stop():
         todo = []  # nothing will run: no calibration either
-    pairs = len(config.presets) * len(config.sigmas) if config.regression and todo else 0
-    betas = calibration_betas(config, executor, store, identity,
-                              bar("calibration (h)", pairs) if pairs else None) if todo else {}
-    conformal = conformal_calibrations(config) if todo else {}
+    betas, conformal = {}, {}
+    if todo:
+        if config.regression:
+            betas = calibration_betas(config, executor, store, identity, bar(
+                "calibration (h)", len(config.presets) * len(config.sigmas)))
+        conformal = conformal_calibrations(config)
 
     def keep(index: int, rows: list[dict]) -> None:
         done[todo[index]] = rows
