@@ -1,4 +1,4 @@
-"""The CLI dispatcher: usage errors exit 2 with one line, help exits 0."""
+"""The CLI dispatcher: usage errors exit 2 with one line, help exits 0; progress in logs."""
 
 import subprocess
 import sys
@@ -24,3 +24,15 @@ def test_help_lists_every_command():
     assert out.returncode == 0
     for name in cli.COMMANDS:
         assert name in out.stdout
+
+
+def test_progress_off_a_terminal_is_ascii_lines_at_most_a_minute_apart(capsys):
+    from drake_cert.cli.progress import progress_bar
+
+    with progress_bar(range(5), desc="frames") as bar:  # capsys: stderr is not a terminal
+        assert bar.mininterval == 60.0 and bar.ascii
+        for _ in bar:
+            pass
+    err = capsys.readouterr().err
+    assert "frames" in err and "5/5" in err
+    assert len([line for line in err.replace("\r", "\n").splitlines() if line.strip()]) <= 3

@@ -104,10 +104,9 @@ def settings_from_args(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
     from drake_cert.certification.sampler import resolve_device
     from drake_cert.certification.seeds import frame_choice_seed
+    from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions
     from drake_cert.experiments.perception_eval import (
         certify_classifier,
@@ -133,8 +132,8 @@ def run(args: argparse.Namespace) -> int:
     stiffness = test.stiffness_n_per_rad[index]
 
     def progress(it):
-        return tqdm(it, desc=f"certify {settings.preset} sigma={settings.sigma:g}",
-                    file=sys.stderr, leave=False, disable=args.json and not sys.stderr.isatty())
+        return progress_bar(it, desc=f"certify {settings.preset} sigma={settings.sigma:g}",
+                            leave=False, disable=args.json and not sys.stderr.isatty())
 
     if settings.task == "classify":
         conformal_cal = None

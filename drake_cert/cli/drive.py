@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 
 PIPELINES = ("certified", "base")
 ATTACKS = ("none", "sa", "ea", "nan", "misshaped")
@@ -142,16 +141,15 @@ def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None, in
 
 def _drive_with_bar(choices: dict, common: dict, position: int):
     """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
-    from tqdm import tqdm
-
+    from drake_cert.cli.progress import progress_bar
     from systems.driving import drive_scenario
 
     scenario = _scenario_for(**choices)
 
     horizon = scenario.route_length_m / 10.0  # a guess; the bar grows past it if needed
-    with tqdm(total=round(horizon, 1), unit="sim s", file=sys.stderr, disable=None,
-              position=position, desc=f"{scenario.name} {scenario.perception.pipeline}",
-              bar_format="{l_bar}{bar}| {n:.1f} sim s [{elapsed}]") as bar:
+    with progress_bar(total=round(horizon, 1), unit="sim s", position=position,
+                      desc=f"{scenario.name} {scenario.perception.pipeline}",
+                      bar_format="{l_bar}{bar}| {n:.1f} sim s [{elapsed}]") as bar:
         return drive_scenario(scenario, progress=bar.update, **common)
 
 

@@ -13,7 +13,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 
 
@@ -116,8 +115,7 @@ def run(args) -> int:
     import shutil
     from pathlib import Path
 
-    from tqdm import tqdm
-
+    from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions
     from drake_cert.errors import ConfigError
     from drake_cert.experiments import outputs, tables
@@ -143,10 +141,7 @@ def run(args) -> int:
     bars = []
 
     def progress(desc, total):
-        # On a terminal a live bar; in a log file (a long run in the background) a line a minute.
-        tty = sys.stderr.isatty()
-        bars.append(tqdm(total=total, desc=desc, unit="task", file=sys.stderr,
-                         mininterval=0.1 if tty else 60.0, ascii=not tty))
+        bars.append(progress_bar(total=total, desc=desc, unit="task"))
         return bars[-1].update
 
     try:

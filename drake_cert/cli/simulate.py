@@ -141,8 +141,7 @@ def check_speed(speed: float, synthesis_settings) -> None:
 
 
 def run(args) -> int:
-    from tqdm import tqdm
-
+    from drake_cert.cli.progress import progress_bar
     from synthesis.design_io import load_design_file
     from systems.closed_loop import simulate
     from systems.road import Road
@@ -158,8 +157,8 @@ def run(args) -> int:
     radius = args.radius or settings.synthesis.design_radius_m
     cases, skipped = _cases(table, args)
     results, tapes = [], []
-    for index, design, stiffness, mu, speed in tqdm(cases, desc="simulate", unit="episode",
-                                                     file=sys.stderr, disable=len(cases) < 2):
+    for index, design, stiffness, mu, speed in progress_bar(cases, desc="simulate", unit="episode",
+                                                             disable=len(cases) < 2):
         road = Road.for_episode(args.road, radius_m=radius, length_m=speed * args.duration)
         start = time.perf_counter()
         tape = simulate(vehicle=vehicle, design=design, settings=settings,

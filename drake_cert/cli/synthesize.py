@@ -74,8 +74,7 @@ def binding_condition(designs) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.errors import ConfigError
     from drake_cert.io import provenance
@@ -91,7 +90,7 @@ def run(args: argparse.Namespace) -> int:
     settings = load_settings(args.settings)
 
     def progress(ranges):
-        return tqdm(ranges, desc="synthesize", unit="range", file=sys.stderr, leave=False)
+        return progress_bar(ranges, desc="synthesize", unit="range", leave=False)
 
     designs = synthesize_table(vehicle, conditions, settings, progress)
     if not any(d.has_safe_speed for d in designs):

@@ -59,8 +59,7 @@ def _format_line(d) -> str:
 
 
 def run(args: argparse.Namespace) -> int:
-    from tqdm import tqdm
-
+    from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from synthesis.design_io import load_design_file
     from synthesis.verify import verify_design_table
@@ -71,8 +70,8 @@ def run(args: argparse.Namespace) -> int:
         "settings": load_settings(args.settings) if args.settings else None,
         "conditions": load_conditions(args.conditions) if args.conditions else None,
     }
-    with tqdm(total=len(table.designs), desc="verify", unit="design", file=sys.stderr,
-              leave=False) as bar:
+    with progress_bar(total=len(table.designs), desc="verify", unit="design",
+                      leave=False) as bar:
         report = verify_design_table(table, lambda i, n: bar.update(1),
                                      **references)
     if report.checked_against == "embedded":
