@@ -5,6 +5,10 @@ path of both smoothed models), the frame and device checks, and seeded generator
 from __future__ import annotations
 
 import copy
+import ctypes
+import ctypes.util
+import functools
+import sys
 import time
 import warnings
 from collections.abc import Callable, Iterator, Sequence
@@ -55,6 +59,30 @@ def resolve_device(device: str | torch.device) -> torch.device:
 
 
 
+@functools.cache
+def retain_freed_memory() -> bool:
+    """Ask glibc to keep freed memory for reuse instead of returning it to the kernel.
+
+    With glibc's defaults every batch of noisy copies frees tens of MB of activations, glibc
+    trims them off the heap, and the next batch page-faults them back in: measured with batches
+    of 250 on one thread (bf16, carla-like sigma 0.5 classifier), 73,000-113,000 minor faults and
+    0.40 s per 1000 samples, a quarter of a reproduce worker's time in the kernel. Never trimming
+    (M_TRIM_THRESHOLD) and serving blocks up to 32 MB from the heap (M_MMAP_THRESHOLD, glibc's
+    largest) leaves 0 faults and 0.25 s per 1000 samples from the third batch on, at the cost
+    of holding the peak (about 0.8 GB per process). Allocation policy only: no number changes.
+    Process-wide, once; False (and nothing done) off glibc.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        mallopt = libc.mallopt
+    except (OSError, AttributeError):
+        return False
+    m_trim_threshold, m_mmap_threshold = -1, -3  # glibc's malloc.h
+    return bool(mallopt(m_trim_threshold, 2**31 - 1)) and bool(mallopt(m_mmap_threshold, 2**25))
+
+
 class NoisySampler:
     """Evaluates a base model on Gaussian-noised copies of one frame: the hot path.
 
@@ -73,6 +101,7 @@ class NoisySampler:
                                      f"{type(base).__name__}")
         self.sigma = float(sigma)
         self.device = resolve_device(device)
+        retain_freed_memory()
         self.base = base.to(self.device).eval()
         self.compiled = False
         self.compile_seconds = 0.0
