@@ -2,6 +2,8 @@
 probabilities are known exactly (linear base models), plus the run-time interval rules."""
 
 import math
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -393,3 +395,27 @@ def test_failed_compilation_falls_back_to_eager_with_a_warning(monkeypatch):
     eager = SmoothedClassifier(model, 2, 0.5).sample_counts(x, 300, 100,
                                                            torch.Generator().manual_seed(0))
     assert np.array_equal(counts, eager) and smooth.compile_seconds == 0.0
+
+
+MEASURE_FAULTS = """
+import resource, sys, torch
+torch.set_num_threads(1)
+from drake_cert.certification.sampler import NoisySampler, with_precision
+from drake_cert.perception.models import load_model
+sampler = NoisySampler(with_precision(load_model("carla-like", "classify", 0.5), "bf16"), 0.5,
+                       "cpu", False)
+x = torch.rand(3, 64, 64)
+list(sampler.outputs(x, 2000, 250, generator=torch.Generator().manual_seed(0)))  # warm-up
+before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+list(sampler.outputs(x, 1000, 250, generator=torch.Generator().manual_seed(1)))
+print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
+"""
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="glibc's allocator")
+def test_sampler_batches_reuse_freed_memory_instead_of_faulting_it_back_in():
+    # glibc's defaults trim each batch's freed activations and fault them back in: 73,000-
+    # 113,000 minor faults per 1000 samples with the shipped model (measured); kept, about 0.
+    out = subprocess.run([sys.executable, "-c", MEASURE_FAULTS], capture_output=True, text=True,
+                         check=True)
+    assert int(out.stdout.split()[-1]) < 5000
