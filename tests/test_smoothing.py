@@ -405,9 +405,10 @@ from drake_cert.perception.models import load_model
 sampler = NoisySampler(with_precision(load_model("carla-like", "classify", 0.5), "bf16"), 0.5,
                        "cpu", False)
 x = torch.rand(3, 64, 64)
-list(sampler.outputs(x, 2000, 250, generator=torch.Generator().manual_seed(0)))  # warm-up
-before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
-list(sampler.outputs(x, 1000, 250, generator=torch.Generator().manual_seed(1)))
+with torch.inference_mode():  # as the callers do
+    list(sampler.outputs(x, 2000, 250, generator=torch.Generator().manual_seed(0)))  # warm-up
+    before = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+    list(sampler.outputs(x, 4000, 250, generator=torch.Generator().manual_seed(1)))
 print(resource.getrusage(resource.RUSAGE_SELF).ru_minflt - before)
 """
 
