@@ -179,3 +179,25 @@ def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(qu
     assert "g inside its certificates" in (copy / "claims.md").read_text()
     assert main([*QUICK_ARGS, "--out", str(tmp_path / "empty"), "--from-store"]) == 2
     assert "holds no frame" in capsys.readouterr().err
+
+
+def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tmp_path):
+    """g's conformal calibrations are executor tasks kept in the store: a rerun computes only
+    the frame left, and every row equals the frame computed alone (which calibrates itself)."""
+    import dataclasses
+
+    from drake_cert.experiments.reproduce import RunStore, conformal_sigmas, run_reproduction
+
+    config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",),
+                                 interval="conformal", conformal_per_class=12, conformal_n=100,
+                                 regression=False)
+    calibrations = len(conformal_sigmas(config))
+    store = RunStore(tmp_path / "store")
+    first = CountingExecutor()
+    run_reproduction(config, first, store=store, stop=lambda: first.ran >= calibrations + 1)
+    assert (tmp_path / "store" / "conformal.json").exists()
+    again = CountingExecutor()
+    rows = run_reproduction(config, again, store=store)
+    assert again.ran == 1  # the second frame; no calibration
+    alone = recompute_frame(config, "rtk-like", 1)
+    assert [r for r in rows if r["position"] == 1] == alone

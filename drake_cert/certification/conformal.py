@@ -110,6 +110,20 @@ class RobustConformalCalibration:
     beta_cal: float = BETA_CAL
     beta_test: float = BETA_TEST
 
+    def to_json(self) -> dict:
+        """A JSON-ready dict (label keys as strings); :meth:`from_json` inverts it exactly."""
+        out = dataclasses.asdict(self)
+        for key in ("thresholds", "frames_per_label"):
+            out[key] = {str(k): v for k, v in out[key].items()}
+        return out
+
+    @classmethod
+    def from_json(cls, data: dict) -> RobustConformalCalibration:
+        data = dict(data)
+        data["thresholds"] = {int(k): float(v) for k, v in data["thresholds"].items()}
+        data["frames_per_label"] = {int(k): int(v) for k, v in data["frames_per_label"].items()}
+        return cls(**data)
+
     @property
     def alpha_total(self) -> float:
         """Miscoverage guaranteed by the construction: ``alpha_c + beta_cal + beta_test``."""

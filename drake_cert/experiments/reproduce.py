@@ -210,62 +210,89 @@ class CalibrationWorker:
         return calibration_beta(self.config, task.preset, task.sigma, model, self.conditions)
 
 
+def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
+                     put: Callable[[dict], None], executor=None,
+                     progress: Callable[[int], None] | None = None) -> dict:
+    """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
+    ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
+    ``put(stored)`` as it arrives (a stopped run keeps them)."""
+    from drake_cert.experiments.executors import LocalExecutor
+
+    todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
+
+    def keep(index: int, value) -> None:
+        stored[(todo[index].preset, todo[index].sigma)] = value
+        put(stored)
+
+    if progress is not None:
+        progress(len(tasks) - len(todo))
+    (executor or LocalExecutor()).map(make_worker, todo, progress, on_result=keep)
+    return {(t.preset, t.sigma): stored[(t.preset, t.sigma)] for t in tasks}
+
+
 def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | None = None,
                       identity: str = "", progress: Callable[[int], None] | None = None) -> dict:
     """Every (preset, sigma) beta of the run, spread over ``executor`` before the frames (read
     back from ``store`` when it holds them under ``identity``)."""
-    from drake_cert.experiments.executors import LocalExecutor
-
     if not config.regression:
         return {}
-    pairs = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
-    betas = store.betas(identity) if store is not None else {}
-    todo = [t for t in pairs if (t.preset, t.sigma) not in betas]
-
-    def keep(index: int, beta: float) -> None:
-        betas[(todo[index].preset, todo[index].sigma)] = beta
-        if store is not None:
-            store.put_betas(identity, betas)
-
-    if progress is not None:
-        progress(len(pairs) - len(todo))
-    (executor or LocalExecutor()).map(lambda: CalibrationWorker(config), todo, progress,
-                                      on_result=keep)
-    return {(t.preset, t.sigma): betas[(t.preset, t.sigma)] for t in pairs}
+    tasks = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
+    stored = store.betas(identity) if store is not None else {}
+    put = (lambda b: store.put_betas(identity, b)) if store is not None else (lambda b: None)
+    return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
+                            progress)
 
 
-def conformal_calibrations(config: ReproduceConfig, only: set | None = None) -> dict:
-    """Robust conformal calibrations of g for every (preset, sigma) the run certifies with (or
-    those in ``only``), each on ``conformal_per_class`` held-out frames per label with its own
-    seed stream (the same for a pair whether computed alone or with the others)."""
-    import torch
+def conformal_sigmas(config: ReproduceConfig) -> list[float]:
+    """Every sigma g certifies with in the run, ascending (a calibration's seed index)."""
+    return sorted({*config.sigmas, config.sweep_sigma})
 
+
+def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, conditions=None):
+    """The robust conformal calibration of g at (preset, sigma): ``conformal_per_class``
+    held-out frames per label, ``conformal_n`` samples each, from the seed stream
+    (preset, CONFORMAL, index of sigma in :func:`conformal_sigmas`)."""
     from drake_cert.certification.classifier import SmoothedClassifier
     from drake_cert.certification.conformal import calibrate_robust_conformal
     from drake_cert.perception.datasets import load_split
 
+    cal = load_split(preset, "calibration", conditions=conditions or load_conditions(),
+                     frames_per_class=config.conformal_per_class)
+    classifier = SmoothedClassifier(run_model(config, preset, "classify", sigma),
+                                    len(cal.label_names), sigma)
+    return calibrate_robust_conformal(
+        classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
+        batch_size=min(config.batch_size, config.conformal_n),
+        root_seed=seed_of(config, preset_key(preset), CONFORMAL,
+                          conformal_sigmas(config).index(sigma)))
+
+
+class ConformalWorker:
+    """Computes g's robust conformal calibration for one (preset, sigma) (an executor worker)."""
+
+    def __init__(self, config: ReproduceConfig):
+        import torch
+
+        torch.set_num_threads(1)
+        self.config, self.conditions = config, load_conditions()
+
+    def __call__(self, task: CalibrationTask):
+        return conformal_calibration(self.config, task.preset, task.sigma, self.conditions)
+
+
+def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunStore | None = None,
+                           identity: str = "", progress: Callable[[int], None] | None = None
+                           ) -> dict:
+    """g's robust conformal calibration for every (preset, sigma) the run certifies with
+    (empty unless ``config.interval`` is "conformal"), spread over ``executor`` and kept in
+    ``store`` like the betas; each pair's numbers are those it gets computed alone."""
     if config.interval != "conformal":
         return {}
-    torch.set_num_threads(1)
-    conditions = load_conditions()
-    out = {}
-    sigmas = sorted({*config.sigmas, config.sweep_sigma})
-    for preset in config.presets:
-        p_idx = preset_key(preset)
-        if only is not None and not any(p == preset for p, _ in only):
-            continue
-        cal = load_split(preset, "calibration", conditions=conditions,
-                         frames_per_class=config.conformal_per_class)
-        for s_idx, sigma in enumerate(sigmas):
-            if only is not None and (preset, sigma) not in only:
-                continue
-            classifier = SmoothedClassifier(run_model(config, preset, "classify", sigma),
-                                            len(cal.label_names), sigma)
-            out[(preset, sigma)] = calibrate_robust_conformal(
-                classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
-                batch_size=min(config.batch_size, config.conformal_n),
-                root_seed=seed_of(config, p_idx, CONFORMAL, s_idx))
-    return out
+    tasks = [CalibrationTask(p, s) for p in config.presets for s in conformal_sigmas(config)]
+    stored = store.conformal(identity) if store is not None else {}
+    put = (lambda c: store.put_conformal(identity, c)) if store is not None else (lambda c: None)
+    return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
+                            progress)
 
 
 class FrameWorker:
@@ -388,7 +415,8 @@ class FrameWorker:
         conformal = None
         if pipeline == "g" and c.interval == "conformal":
             if (preset, sigma) not in self._conformal:
-                self._conformal.update(conformal_calibrations(c, only={(preset, sigma)}))
+                self._conformal[(preset, sigma)] = conformal_calibration(c, preset, sigma,
+                                                                         self.conditions)
             conformal = self._conformal[(preset, sigma)]
         interval = CertifiedInterval(preset_designs(self.designs, self.conditions, preset),
                                      self.conditions, preset, eps=eps, mode=mode, task=task,
@@ -471,9 +499,10 @@ def run_identity(config: ReproduceConfig, designs: list) -> str:
 
 
 class RunStore:
-    """What a reproduction has finished, under ``root``: one JSON file per frame (its rows) and
-    ``calibration.json`` (the h betas), each written atomically as it arrives and reused only
-    by a run with the same :func:`run_identity`. A stopped run resumes where it stopped."""
+    """What a reproduction has finished, under ``root``: one JSON file per frame (its rows),
+    ``calibration.json`` (the h betas) and ``conformal.json`` (g's robust conformal
+    calibrations), each written atomically as it arrives and reused only by a run with the same
+    :func:`run_identity`. A stopped run resumes where it stopped."""
 
     def __init__(self, root):
         from pathlib import Path
@@ -513,6 +542,20 @@ class RunStore:
     def put_betas(self, identity: str, betas: dict) -> None:
         self._write(self.root / "calibration.json", identity,
                     betas=[[p, s, b] for (p, s), b in sorted(betas.items())])
+
+    def conformal(self, identity: str) -> dict:
+        from drake_cert.certification.conformal import RobustConformalCalibration
+
+        stored = self._read(self.root / "conformal.json", identity)
+        if stored is None:
+            return {}
+        return {(p, float(s)): RobustConformalCalibration.from_json(c)
+                for p, s, c in stored["calibrations"]}
+
+    def put_conformal(self, identity: str, calibrations: dict) -> None:
+        self._write(self.root / "conformal.json", identity,
+                    calibrations=[[p, s, c.to_json()] for (p, s), c in
+                                  sorted(calibrations.items())])
 
     def _write(self, path, identity: str, **content) -> None:
         import json
@@ -554,7 +597,10 @@ def run_reproduction(config: ReproduceConfig, executor=None,
         if config.regression:
             betas = calibration_betas(config, executor, store, identity, bar(
                 "calibration (h)", len(config.presets) * len(config.sigmas)))
-        conformal = conformal_calibrations(config)
+        if config.interval == "conformal":
+            conformal = conformal_calibrations(config, executor, store, identity, bar(
+                "calibration (conformal g)",
+                len(config.presets) * len(conformal_sigmas(config))))
 
     def keep(index: int, rows: list[dict]) -> None:
         done[todo[index]] = rows
