@@ -54,3 +54,22 @@ def test_a_departure_on_a_frame_g_labels_wrong_when_clean_is_told_apart():
     assert c["holds"]["g_zero_instability_inside_certificates_where_right_clean"] is True
     assert c["g_inside_certificate_clean_right"]["total"] == 2  # frame 1's SA and EA
     assert c["g_departures_inside_certificate"][0]["clean_prediction"] == "wet"
+
+
+def test_departures_are_split_by_whether_the_certified_range_holds_the_true_label():
+    """A departure under a design whose label range excludes the true label is the perception
+    claim failing; one under a range that holds it would be the controller's."""
+    rows = frame(0, g_left=True) + frame(1)
+    for r in rows:
+        if r["position"] == 0 and r["pipeline"] == "g" and r["attack"] == "sa":
+            r["design_labels"] = "grippy+dry2"  # the certified range misses "dry"
+    c = check_claims(rows, 0.25)["p"]
+    assert c["g_certified_range_misses_true_label"]["hits"] == 1
+    assert c["g_inside_certificate_range_holds"] == dict(c["g_inside_certificate_range_holds"],
+                                                         hits=0, total=3)
+    assert c["holds"]["g_zero_instability_where_the_certified_range_holds_the_true_label"]
+    assert not c["g_departures_inside_certificate"][0]["range_holds_true_label"]
+    rows[4]["design_labels"] = "dry+wet"  # now the range holds the true label: the claim breaks
+    c = check_claims(rows, 0.25)["p"]
+    assert not c["holds"]["g_zero_instability_where_the_certified_range_holds_the_true_label"]
+    assert "range holds the true label" in markdown({"p": c}, 0.25)

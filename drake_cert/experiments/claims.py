@@ -8,7 +8,13 @@ Per preset, over the frames the run holds:
    episodes whose run-time interval was certified at the attack's budget (``certified``), how
    many left the lane, with a 95% Clopper-Pearson upper bound on that share, over all of them
    and over those whose frame g labels right when clean (the safe-set interval's standing
-   assumption); the departures are listed frame by frame with g's clean label;
+   assumption); the departures are listed frame by frame with g's clean label. The same
+   episodes split by what the certificate concludes: the certified label range (the labels of
+   the design it selected) holds the frame's true label, or misses it. Where it holds, the
+   design was synthesized for the true condition's stiffness and a friction no higher than the
+   true one, so a departure there would be the controller's failure; where it misses, the
+   perception claim failed (for the safe-set interval whenever g is wrong clean; for the
+   robust conformal interval with probability at most its alpha_total);
 4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
 
 Shares carry their 95% Clopper-Pearson interval (two-sided; the upper bound of claim 3 is
@@ -36,6 +42,12 @@ def _velocity(rows: list[dict]) -> float:
     return float(np.mean([r["velocity_mps"] for r in rows])) if rows else float("nan")
 
 
+def holds_true_label(row: dict) -> bool:
+    """Whether the label range of the design g's interval selected holds the true label."""
+    return row["true_label"] in row["design_labels"].split("+")
+
+
+
 def check_claims(rows: list[dict], main_eps: float) -> dict:
     """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`)."""
     out = {}
@@ -59,11 +71,13 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                      and r["certified"]]
         right = [r for r in certified
                  if clean_g.get((r["position"], r["sigma"])) == r["true_label"]]
+        holds_truth = [r for r in certified if holds_true_label(r)]
         departures = [dict(frame=r["frame"], true_label=r["true_label"], sigma=r["sigma"],
                            attack=r["attack"], eps=r["eps"], predicted=r["predicted"],
                            clean_prediction=clean_g.get((r["position"], r["sigma"])),
                            design=r["design_labels"], velocity_mps=r["velocity_mps"],
-                           interval_covers=r["interval_covers"])
+                           interval_covers=r["interval_covers"],
+                           range_holds_true_label=holds_true_label(r))
                       for r in certified if r["left_lane"]]
         sigmas = sorted({r["sigma"] for r in mine if r["pipeline"] == "g"})
         kept = {}
@@ -80,6 +94,10 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
             g_inside_certificate=_share(len(departures), len(certified)),
             g_inside_certificate_clean_right=_share(sum(r["left_lane"] for r in right),
                                                     len(right)),
+            g_inside_certificate_range_holds=_share(
+                sum(r["left_lane"] for r in holds_truth), len(holds_truth)),
+            g_certified_range_misses_true_label=_share(len(certified) - len(holds_truth),
+                                                       len(certified)),
             g_departures_inside_certificate=departures,
             g_ea_speed_kept={str(s): v for s, v in kept.items()},
             holds=dict(
@@ -88,6 +106,8 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                 g_zero_instability_inside_certificates=not departures,
                 g_zero_instability_inside_certificates_where_right_clean=not any(
                     r["left_lane"] for r in right),
+                g_zero_instability_where_the_certified_range_holds_the_true_label=not any(
+                    r["left_lane"] for r in holds_truth),
                 g_keeps_80pct_speed_under_ea=all(v["kept"] >= SPEED_KEPT for v in kept.values()),
             ))
     return out
@@ -121,7 +141,11 @@ def markdown(claims: dict, main_eps: float) -> str:
               "was certified at the attack's budget; departures / episodes)", "", head,
               row("left the lane", lambda c: pct(c["g_inside_certificate"])),
               row("... on frames g labels right when clean",
-                  lambda c: pct(c["g_inside_certificate_clean_right"]))]
+                  lambda c: pct(c["g_inside_certificate_clean_right"])),
+              row("... where the certified label range holds the true label",
+                  lambda c: pct(c["g_inside_certificate_range_holds"])),
+              row("certified label range misses the true label",
+                  lambda c: pct(c["g_certified_range_misses_true_label"]))]
     lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
               f"(claim: >= {SPEED_KEPT:.0%})", "", head]
     lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
@@ -134,11 +158,12 @@ def markdown(claims: dict, main_eps: float) -> str:
     if deps:
         lines += ["", "Departures of g inside its certificates (each a frame and cell):", "",
                   "| preset | frame | true label | sigma | attack | eps | g's label (clean) | "
-                  "g's label (attacked) | design | interval holds the true stiffness |",
-                  "|---|---|---|---|---|---|---|---|---|---|"]
+                  "g's label (attacked) | design | interval holds the true stiffness | "
+                  "range holds the true label |",
+                  "|---|---|---|---|---|---|---|---|---|---|---|"]
         lines += [f"| {p} | {d['frame']} | {d['true_label']} | {d['sigma']:g} | {d['attack']} | "
                   f"{d['eps']:g} | {d['clean_prediction']} | {d['predicted']} | {d['design']} | "
-                  f"{d['interval_covers']} |" for p, d in deps]
+                  f"{d['interval_covers']} | {d['range_holds_true_label']} |" for p, d in deps]
         lines += ["", "A certified label range holds on the whole eps-ball, the clean frame "
                   "included: where g's clean label is already wrong, the certificate carries "
                   "that error (the safe-set interval's standing assumption; the robust "
