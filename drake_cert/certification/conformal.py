@@ -63,6 +63,7 @@ from scipy.stats import beta as beta_dist
 from scipy.stats import norm
 
 from drake_cert.certification.classifier import ClassCertificate, SmoothedClassifier
+from drake_cert.certification.intervals import StiffnessBounds
 from drake_cert.certification.sampler import make_generator
 from drake_cert.certification.seeds import stream_seed
 from drake_cert.certification.statistics import check_alpha, check_count
@@ -209,7 +210,7 @@ def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Ten
 
 
 @dataclasses.dataclass(frozen=True)
-class ConformalInterval:
+class ConformalInterval(StiffnessBounds):
     """Robust conformal stiffness interval at an observed frame (N/rad).
 
     ``label_set`` is C(x') (label names), ``labels`` the contiguous friction range whose hull
@@ -222,14 +223,6 @@ class ConformalInterval:
     stiffness_lo_n_per_rad: float
     stiffness_hi_n_per_rad: float
     alpha_total: float
-
-    @property
-    def interval(self) -> tuple[float, float]:
-        return (self.stiffness_lo_n_per_rad, self.stiffness_hi_n_per_rad)
-
-    @property
-    def width_n_per_rad(self) -> float:
-        return self.stiffness_hi_n_per_rad - self.stiffness_lo_n_per_rad
 
 
 def conformal_interval(counts: Sequence[int] | np.ndarray | ClassCertificate,

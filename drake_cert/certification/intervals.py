@@ -33,9 +33,21 @@ def runtime_interval(lower: float, upper: float, beta: float,
     return float(lo), float(hi)
 
 
+class StiffnessBounds:
+    """``interval`` and ``width_n_per_rad`` of a run-time interval with fields
+    ``stiffness_lo_n_per_rad`` and ``stiffness_hi_n_per_rad`` (N/rad)."""
+
+    @property
+    def interval(self) -> tuple[float, float]:
+        return (self.stiffness_lo_n_per_rad, self.stiffness_hi_n_per_rad)
+
+    @property
+    def width_n_per_rad(self) -> float:
+        return self.stiffness_hi_n_per_rad - self.stiffness_lo_n_per_rad
+
 
 @dataclasses.dataclass(frozen=True)
-class RuntimeCertificate:
+class RuntimeCertificate(StiffnessBounds):
     """Run-time stiffness interval at an observed frame (N/rad).
 
     ``labels`` is the certified contiguous range T (the whole family on fallback),
@@ -48,14 +60,6 @@ class RuntimeCertificate:
     stiffness_hi_n_per_rad: float
     radius: float
     certified: bool
-
-    @property
-    def interval(self) -> tuple[float, float]:
-        return (self.stiffness_lo_n_per_rad, self.stiffness_hi_n_per_rad)
-
-    @property
-    def width_n_per_rad(self) -> float:
-        return self.stiffness_hi_n_per_rad - self.stiffness_lo_n_per_rad
 
 
 def runtime_classification_interval(certificate: ClassCertificate, table, preset: str,
