@@ -141,6 +141,10 @@ def run(args) -> int:
     bars = []
 
     def progress(desc, total):
+        # One phase at a time: closing the previous bar here stops its clock at the phase's end
+        # (closed only at the end of the run, every bar would show the whole run's time).
+        if bars:
+            bars[-1].close()
         bars.append(progress_bar(total=total, desc=desc, unit="task"))
         return bars[-1].update
 
