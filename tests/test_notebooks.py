@@ -27,3 +27,7 @@ def test_certified_perception_notebook_runs(monkeypatch):
 
 def test_certified_driving_notebook_runs(monkeypatch):
     _execute("certified_driving.ipynb", monkeypatch)
+
+
+def test_reproduction_notebook_runs(monkeypatch):
+    _execute("reproduction.ipynb", monkeypatch)
