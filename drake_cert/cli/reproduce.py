@@ -116,12 +116,13 @@ def run(args) -> int:
     from pathlib import Path
 
     from drake_cert.cli.progress import progress_bar
-    from drake_cert.config import load_conditions
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.errors import ConfigError
     from drake_cert.experiments import outputs, tables
     from drake_cert.experiments.executors import make_executor
     from drake_cert.experiments.reproduce import RunStore, run_reproduction
     from drake_cert.io import check_writable, provenance
+    from synthesis.table import synthesize_table
 
     config = build_config(args)
     if args.budget_min is not None and not args.budget_min > 0:
@@ -148,9 +149,10 @@ def run(args) -> int:
         bars.append(progress_bar(total=total, desc=desc, unit="task"))
         return bars[-1].update
 
+    designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())  # once
     try:
         rows = run_reproduction(config, executor, progress=progress, store=RunStore(out / "store"),
-                                stop=stop)
+                                stop=stop, designs=designs)
     finally:
         for b in bars:
             b.close()
@@ -172,7 +174,7 @@ def run(args) -> int:
                 frame_cells=len(rows), frames_done=done, complete=complete,
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
-                                    plots=not args.no_plots)
+                                    plots=not args.no_plots, designs=designs)
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
                       "files": [str(p) for p in written]}))

@@ -31,8 +31,10 @@ FRAME_COLUMNS = ("preset", "frame", "position", "seed", "true_label", "stiffness
 
 
 def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], config,
-                  conditions, meta: dict, plots: bool = True) -> list[Path]:
-    """Write every output file under ``out_dir``; returns their paths."""
+                  conditions, meta: dict, plots: bool = True,
+                  designs: list | None = None) -> list[Path]:
+    """Write every output file under ``out_dir``; returns their paths. ``designs``: the run's
+    design table, which ``traces.png`` drives (synthesized again when not given)."""
     from drake_cert.experiments import claims
 
     out = Path(out_dir)
@@ -49,7 +51,7 @@ def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], co
     if plots:
         written += [atomic_write_bytes(out / "sweep.png", sweep_plot(summary, config)),
                     atomic_write_bytes(out / "radii.png", radius_plot(rows, config)),
-                    atomic_write_bytes(out / "traces.png", traces_plot(rows, config))]
+                    atomic_write_bytes(out / "traces.png", traces_plot(rows, config, designs))]
     return written
 
 

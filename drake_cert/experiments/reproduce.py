@@ -570,9 +570,12 @@ class RunStore:
 def run_reproduction(config: ReproduceConfig, executor=None,
                      progress: Callable[[str, int], Callable[[int], None]] | None = None,
                      store: RunStore | None = None,
-                     stop: Callable[[], bool] | None = None) -> list[dict]:
+                     stop: Callable[[], bool] | None = None,
+                     designs: list | None = None) -> list[dict]:
     """Every per-frame row of the reproduction, in (preset, frame, cell) order.
 
+    ``designs``: the design table of the shipped vehicle, conditions and settings (synthesized
+    here when not given; a caller that also draws ``traces.png`` passes the one it drew with).
     ``progress(desc, total)`` returns the update callable of one phase's progress bar.
     With a ``store``, finished frames and betas are read back from it and new ones written to
     it as they arrive; once ``stop()`` is True no new frame starts and the rows of the frames
@@ -584,7 +587,8 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     config.validate()
     executor = executor or LocalExecutor()
     bar = progress or (lambda desc, total: None)
-    designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
+    if designs is None:
+        designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
     identity = run_identity(config, designs) if store is not None else ""
     tasks = tasks_for(config)
     done = {t: store.frame(identity, t) for t in tasks} if store is not None else {}
