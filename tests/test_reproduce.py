@@ -2,6 +2,7 @@
 whatever the executor, every row recomputable alone."""
 
 import csv
+import json
 
 import pytest
 
@@ -177,6 +178,11 @@ def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(qu
     assert main([*QUICK_ARGS, "--out", str(copy), "--from-store"]) == 0
     assert (copy / "results.csv").read_text() == (quick_local / "results.csv").read_text()
     assert "g inside its certificates" in (copy / "claims.md").read_text()
+    # The printed summary carries the claims' verdicts, as claims.json states them.
+    printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    claims = json.loads((copy / "claims.json").read_text())
+    assert printed["claims_hold"] == {p: c["holds"] for p, c in claims.items()}
+    assert set(printed["claims_hold"]) == {"carla-like", "rtk-like", "robotcar-like"}
     assert main([*QUICK_ARGS, "--out", str(tmp_path / "empty"), "--from-store"]) == 2
     assert "holds no frame" in capsys.readouterr().err
 

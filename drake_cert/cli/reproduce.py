@@ -175,7 +175,8 @@ def run(args) -> int:
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
                                     plots=not args.no_plots, designs=designs)
+    holds = {p: c["holds"] for p, c in json.loads((out / "claims.json").read_text()).items()}
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
-                      "files": [str(p) for p in written]}))
+                      "claims_hold": holds, "files": [str(p) for p in written]}))
     return 0
