@@ -41,7 +41,10 @@ def check_writable(path: str | os.PathLike, option: str = "output") -> Path:
 
     Called before the work that makes the file, so a bad path fails in one line and leaves
     nothing behind: ``path`` must not be a folder, its nearest existing ancestor must be a
-    folder (not a regular file) that this process may write (folders in between are made).
+    folder (not a regular file) in which this process can create a file (folders in between
+    are made). That is tried, with a nameless temporary file, rather than read off the
+    permission bits: root passes every permission check yet cannot write in ``/proc``, a
+    read-only mount or some network folders.
     ``option`` names the command-line option in the message.
     """
     from drake_cert.errors import ConfigError
@@ -54,8 +57,12 @@ def check_writable(path: str | os.PathLike, option: str = "output") -> Path:
         ancestor = ancestor.parent
     if not ancestor.is_dir():
         raise ConfigError(f"{option} {path}: {ancestor} is a file, not a folder")
-    if not os.access(ancestor, os.W_OK | os.X_OK):
-        raise ConfigError(f"{option} {path}: folder {ancestor} is not writable")
+    try:
+        with tempfile.TemporaryFile(dir=ancestor):
+            pass
+    except OSError as e:
+        raise ConfigError(f"{option} {path}: folder {ancestor} is not writable (creating a "
+                          f"file there failed: {e.strerror or e})") from None
     return path
 
 

@@ -120,6 +120,15 @@ def test_generate_refuses_an_unwritable_output_before_rendering(regular_file, ca
     assert regular_file.read_text() == "not a folder"
 
 
+@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+def test_reproduce_refuses_a_folder_it_cannot_write_in_before_any_work(capsys):
+    # /proc refuses new files even to root, who passes every permission-bit check.
+    start = time.perf_counter()
+    err = one_line_exit_2(capsys, ["reproduce", "--quick", "--out", "/proc/drake-cert-results"])
+    assert "--out" in err and "is not writable" in err
+    assert time.perf_counter() - start < 5  # before the calibration, not after it
+
+
 def test_synthesize_out_under_a_regular_file_fails_before_synthesis(regular_file, capsys):
     start = time.perf_counter()
     err = one_line_exit_2(capsys, ["synthesize", "--out", str(regular_file / "d.yaml")])
