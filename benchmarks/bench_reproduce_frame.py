@@ -19,7 +19,8 @@ import dataclasses
 import time
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
-from drake_cert.experiments.reproduce import FrameTask, FrameWorker, ReproduceConfig
+from drake_cert.experiments.reproduce import FrameWorker
+from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
 from synthesis.table import synthesize_table
 
 

@@ -7,12 +7,12 @@ import json
 import pytest
 
 from drake_cert.cli import main
-from drake_cert.experiments.reproduce import (
+from drake_cert.experiments.reproduce import recompute_frame
+from drake_cert.experiments.reproduce_config import (
     CALIBRATION,
     CELL,
     FRAME_CHOICE,
     ReproduceConfig,
-    recompute_frame,
     seed_of,
 )
 from drake_cert.experiments.tables import COLUMNS
@@ -146,7 +146,8 @@ def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tm
     computed, and the rows equal those of the uninterrupted run."""
     import dataclasses
 
-    from drake_cert.experiments.reproduce import RunStore, run_reproduction
+    from drake_cert.experiments.reproduce import run_reproduction
+    from drake_cert.experiments.run_store import RunStore
 
     config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",))
     store = RunStore(tmp_path / "store")
@@ -192,7 +193,9 @@ def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tm
     the frame left, and every row equals the frame computed alone (which calibrates itself)."""
     import dataclasses
 
-    from drake_cert.experiments.reproduce import RunStore, conformal_sigmas, run_reproduction
+    from drake_cert.experiments.calibrations import conformal_sigmas
+    from drake_cert.experiments.reproduce import run_reproduction
+    from drake_cert.experiments.run_store import RunStore
 
     config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",),
                                  interval="conformal", conformal_per_class=12, conformal_n=100,

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from drake_cert.experiments import outputs
-from drake_cert.experiments.reproduce import ReproduceConfig
+from drake_cert.experiments.reproduce_config import ReproduceConfig
 
 
 def _row(pipeline, position, eps, left, speed, labels="sunny", sigma=0.0):

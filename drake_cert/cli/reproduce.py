@@ -67,7 +67,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def build_config(args):
     import dataclasses
 
-    from drake_cert.experiments.reproduce import ReproduceConfig
+    from drake_cert.experiments.reproduce_config import ReproduceConfig
 
     config = ReproduceConfig.quick(args.seed) if args.quick else ReproduceConfig(seed=args.seed)
     changes = {}
@@ -120,7 +120,8 @@ def run(args) -> int:
     from drake_cert.errors import ConfigError
     from drake_cert.experiments import outputs, tables
     from drake_cert.experiments.executors import make_executor
-    from drake_cert.experiments.reproduce import RunStore, run_reproduction
+    from drake_cert.experiments.reproduce import run_reproduction
+    from drake_cert.experiments.run_store import RunStore
     from drake_cert.io import check_writable, provenance
     from synthesis.table import synthesize_table
 

@@ -1,0 +1,149 @@
+"""The reproduction's calibrations, computed before its frames and spread over its executor:
+h's conformal beta per (preset, sigma) (DESIGN 3) and, with ``--interval conformal``, g's robust
+conformal calibration per (preset, sigma). Each comes from its own seed stream, so a pair's
+numbers are those it gets computed alone; the run's store keeps them as they arrive.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from drake_cert.config import load_conditions
+from drake_cert.experiments.reproduce_config import (
+    CALIBRATION,
+    CONFORMAL,
+    ReproduceConfig,
+    preset_key,
+    run_model,
+    seed_of,
+)
+
+if TYPE_CHECKING:
+    from drake_cert.experiments.run_store import RunStore
+
+
+def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
+                     conditions) -> float:
+    """The h pipeline's conformal beta for (preset, sigma): Mondrian split conformal on
+    ``calibration_per_class`` frames per label of the calibration split (DESIGN 3), with its own
+    seed stream; infinite (the envelope) when too few frames for alpha_c."""
+    from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+    from drake_cert.perception.datasets import load_split
+
+    c = config
+    cal = load_split(preset, "calibration", conditions=conditions,
+                     frames_per_class=c.calibration_per_class)
+    calib = calibrate_conformal(
+        MedianSmoothedRegressor(model, sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
+        cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
+        alpha_m=c.alpha_m, alpha_c=c.alpha_c,
+        seed=seed_of(c, preset_key(preset), CALIBRATION,
+                     c.sigmas.index(sigma) if sigma in c.sigmas else 99))
+    return calib.beta
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationTask:
+    preset: str
+    sigma: float
+
+
+class CalibrationWorker:
+    """Computes the h pipeline's beta for one (preset, sigma) (an executor worker)."""
+
+    def __init__(self, config: ReproduceConfig):
+        import torch
+
+        torch.set_num_threads(1)
+        self.config, self.conditions = config, load_conditions()
+
+    def __call__(self, task: CalibrationTask) -> float:
+        model = run_model(self.config, task.preset, "regress", task.sigma)
+        return calibration_beta(self.config, task.preset, task.sigma, model, self.conditions)
+
+
+def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
+                     put: Callable[[dict], None], executor=None,
+                     progress: Callable[[int], None] | None = None) -> dict:
+    """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
+    ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
+    ``put(stored)`` as it arrives (a stopped run keeps them)."""
+    from drake_cert.experiments.executors import LocalExecutor
+
+    todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
+
+    def keep(index: int, value) -> None:
+        stored[(todo[index].preset, todo[index].sigma)] = value
+        put(stored)
+
+    if progress is not None:
+        progress(len(tasks) - len(todo))
+    (executor or LocalExecutor()).map(make_worker, todo, progress, on_result=keep)
+    return {(t.preset, t.sigma): stored[(t.preset, t.sigma)] for t in tasks}
+
+
+def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | None = None,
+                      identity: str = "", progress: Callable[[int], None] | None = None) -> dict:
+    """Every (preset, sigma) beta of the run, spread over ``executor`` before the frames (read
+    back from ``store`` when it holds them under ``identity``)."""
+    if not config.regression:
+        return {}
+    tasks = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
+    stored = store.betas(identity) if store is not None else {}
+    put = (lambda b: store.put_betas(identity, b)) if store is not None else (lambda b: None)
+    return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
+                            progress)
+
+
+def conformal_sigmas(config: ReproduceConfig) -> list[float]:
+    """Every sigma g certifies with in the run, ascending (a calibration's seed index)."""
+    return sorted({*config.sigmas, config.sweep_sigma})
+
+
+def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, conditions=None):
+    """The robust conformal calibration of g at (preset, sigma): ``conformal_per_class``
+    held-out frames per label, ``conformal_n`` samples each, from the seed stream
+    (preset, CONFORMAL, index of sigma in :func:`conformal_sigmas`)."""
+    from drake_cert.certification.classifier import SmoothedClassifier
+    from drake_cert.certification.conformal import calibrate_robust_conformal
+    from drake_cert.perception.datasets import load_split
+
+    cal = load_split(preset, "calibration", conditions=conditions or load_conditions(),
+                     frames_per_class=config.conformal_per_class)
+    classifier = SmoothedClassifier(run_model(config, preset, "classify", sigma),
+                                    len(cal.label_names), sigma)
+    return calibrate_robust_conformal(
+        classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
+        batch_size=min(config.batch_size, config.conformal_n),
+        root_seed=seed_of(config, preset_key(preset), CONFORMAL,
+                          conformal_sigmas(config).index(sigma)))
+
+
+class ConformalWorker:
+    """Computes g's robust conformal calibration for one (preset, sigma) (an executor worker)."""
+
+    def __init__(self, config: ReproduceConfig):
+        import torch
+
+        torch.set_num_threads(1)
+        self.config, self.conditions = config, load_conditions()
+
+    def __call__(self, task: CalibrationTask):
+        return conformal_calibration(self.config, task.preset, task.sigma, self.conditions)
+
+
+def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunStore | None = None,
+                           identity: str = "", progress: Callable[[int], None] | None = None
+                           ) -> dict:
+    """g's robust conformal calibration for every (preset, sigma) the run certifies with
+    (empty unless ``config.interval`` is "conformal"), spread over ``executor`` and kept in
+    ``store`` like the betas; each pair's numbers are those it gets computed alone."""
+    if config.interval != "conformal":
+        return {}
+    tasks = [CalibrationTask(p, s) for p in config.presets for s in conformal_sigmas(config)]
+    stored = store.conformal(identity) if store is not None else {}
+    put = (lambda c: store.put_conformal(identity, c)) if store is not None else (lambda c: None)
+    return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
+                            progress)
