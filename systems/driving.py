@@ -363,12 +363,12 @@ def drive_scenario(scenario: Scenario, *, vehicle: VehicleParams, settings: Sett
                    conditions: ConditionsTable, designs: list[ControllerDesign],
                    progress: Callable[[float], None] | None = None) -> DriveResult:
     """Build the Diagram for ``scenario`` and drive it (one call; usable in a worker process)."""
-    import torch
+    from drake_cert.threads import torch_threads
 
-    torch.set_num_threads(1)
-    built = build_certified_driving_diagram(scenario, vehicle=vehicle, settings=settings,
-                                            conditions=conditions, designs=designs)
-    return drive(built, progress=progress)
+    with torch_threads(1):
+        built = build_certified_driving_diagram(scenario, vehicle=vehicle, settings=settings,
+                                                conditions=conditions, designs=designs)
+        return drive(built, progress=progress)
 
 
 def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:

@@ -79,8 +79,12 @@ def test_under_an_efficiency_attack_the_certified_car_keeps_moving(setup):
 
 @pytest.mark.parametrize("fault", ["nan", "misshaped"])
 def test_bad_frames_fall_back_to_the_envelope_never_to_a_nominal(setup, fault):
+    import torch
+
     scenario = with_overrides(snow_curve(), pipeline="certified", attack=fault)
+    threads = torch.get_num_threads()
     result = drive_scenario(short(scenario, 2.0), **setup)
+    assert torch.get_num_threads() == threads  # the drive's one thread does not outlive it
     envelope = setup["conditions"].envelope("robotcar-like")
     ticks = result.ticks
     assert len(ticks.times_s) >= 9  # 2 s at 5 Hz

@@ -39,15 +39,20 @@ class LocalExecutor:
     """Runs every task in this process, one after another."""
 
     def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
+        from drake_cert.threads import torch_threads
+
         results: list[Any] = [None] * len(tasks)
         if not tasks:
             return results
-        worker = make_worker()
-        for index, task in enumerate(tasks):
-            if stop is not None and stop():
-                break
-            results[index] = worker(task)
-            _report(index, results[index], progress, on_result)
+        # Workers set torch to one thread (as in a Ray actor); this process gets its own
+        # count back when the map ends.
+        with torch_threads(1):
+            worker = make_worker()
+            for index, task in enumerate(tasks):
+                if stop is not None and stop():
+                    break
+                results[index] = worker(task)
+                _report(index, results[index], progress, on_result)
         return results
 
 

@@ -265,5 +265,8 @@ def run_reproduction(config: ReproduceConfig, executor=None,
 
 def recompute_frame(config: ReproduceConfig, preset: str, position: int) -> list[dict]:
     """The rows of one frame, computed alone (same numbers as in the full run)."""
+    from drake_cert.threads import torch_threads
+
     config.validate()
-    return FrameWorker(config)(FrameTask(preset, position))
+    with torch_threads(1):  # the worker's thread count, given back afterwards
+        return FrameWorker(config)(FrameTask(preset, position))
