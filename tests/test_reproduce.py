@@ -3,6 +3,7 @@ whatever the executor, every row recomputable alone."""
 
 import csv
 import json
+import time
 
 import pytest
 
@@ -100,6 +101,20 @@ def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
                  str(tmp_path / "kept")]) == 2
     assert store.exists()  # refused before anything was deleted
     assert main(["reproduce", "--quick", "--budget-min", "0", "--out", str(tmp_path)]) == 2
+
+
+@pytest.mark.parametrize("address, message", [
+    ("127.0.0.1:1", "no Ray cluster answers at 127.0.0.1:1"),  # nothing listens on port 1
+    ("ray://127.0.0.1:1", "no Ray cluster answers at 127.0.0.1:1"),
+    ("head-node", "expected 'auto', 'HOST:PORT' or 'ray://HOST:PORT'"),
+])
+def test_an_unreachable_cluster_address_is_refused_at_once(tmp_path, capsys, address, message):
+    # Ray alone retries such an address for minutes without a word.
+    start = time.perf_counter()
+    assert main(["reproduce", "--quick", "--executor", "ray", "--address", address,
+                 "--out", str(tmp_path)]) == 2
+    assert message in capsys.readouterr().err
+    assert time.perf_counter() - start < 10
 
 
 def test_reproduce_runs_g_through_the_conformal_interval_when_asked():

@@ -56,6 +56,27 @@ class LocalExecutor:
         return results
 
 
+def check_cluster_address(address: str | None, timeout_s: float = 5.0) -> None:
+    """Raise :class:`ConfigError` unless ``address`` ("HOST:PORT" or "ray://HOST:PORT") takes a
+    TCP connection within ``timeout_s``: Ray itself retries an unreachable address for minutes
+    without a word. None (a local Ray started here) and "auto" (one already running on this
+    machine, which Ray finds or refuses at once) are left to Ray."""
+    import socket
+
+    if address is None or address == "auto":
+        return
+    host, sep, port = address.removeprefix("ray://").rpartition(":")
+    if not sep or not host or not port.isdigit():
+        raise ConfigError(f"--address {address!r}: expected 'auto', 'HOST:PORT' or "
+                          "'ray://HOST:PORT'")
+    try:
+        with socket.create_connection((host.strip("[]"), int(port)), timeout=timeout_s):
+            pass
+    except OSError as e:
+        raise ConfigError(f"--address {address}: no Ray cluster answers at {host}:{port} "
+                          f"({e.strerror or e})") from None
+
+
 class RayExecutor:
     """Runs tasks on ``workers`` Ray actors (each builds its worker once).
 
@@ -66,6 +87,7 @@ class RayExecutor:
     def __init__(self, workers: int = 2, address: str | None = None):
         if workers < 1:
             raise ConfigError(f"workers = {workers} must be >= 1")
+        check_cluster_address(address)
         self.workers, self.address = int(workers), address
 
     def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
@@ -85,7 +107,10 @@ class RayExecutor:
                 # The working tree's packages must be importable by the workers.
                 kwargs["runtime_env"]["env_vars"]["PYTHONPATH"] = os.pathsep.join(
                     p for p in (_project_root(), os.environ.get("PYTHONPATH", "")) if p)
-            ray.init(**kwargs)
+            try:
+                ray.init(**kwargs)
+            except ConnectionError as e:  # "auto" with no Ray running on this machine
+                raise ConfigError(f"--address {self.address}: {e}") from None
         try:
             actor_class = ray.remote(num_cpus=1)(_Actor)
             actors = [actor_class.remote(make_worker) for _ in range(self.workers)]
