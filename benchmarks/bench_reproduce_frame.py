@@ -21,15 +21,17 @@ import time
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.experiments.reproduce import FrameWorker
 from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
+from drake_cert.threads import torch_threads
 from synthesis.table import synthesize_table
 
 
 def time_frame(config: ReproduceConfig, task: FrameTask, designs) -> tuple[float, int]:
     """Seconds for one frame on a fresh worker (models loaded on first use), and its
     number of certificates (rows whose interval came from a smoothed model)."""
-    worker = FrameWorker(config, designs=designs)
-    start = time.perf_counter()
-    rows = worker(task)
+    with torch_threads(1):  # as the executors run a worker
+        worker = FrameWorker(config, designs=designs)
+        start = time.perf_counter()
+        rows = worker(task)
     return time.perf_counter() - start, sum(r["pipeline"] == "g" for r in rows)
 
 

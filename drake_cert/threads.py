@@ -1,6 +1,6 @@
 """torch's intra-op thread count, set for a block of work and given back afterwards.
 
-The reproduction's workers and the driving Diagram compute on one thread, as each Ray worker
+The reproduction's executors and the driving Diagram compute on one thread, as each Ray worker
 does, so that in-process and Ray runs do the same arithmetic. Run in the caller's own process
 (the in-process executor, a notebook), that setting would otherwise outlive the call and leave
 every later torch computation of the session on one thread.

@@ -120,7 +120,9 @@ def test_generate_refuses_an_unwritable_output_before_rendering(regular_file, ca
     assert regular_file.read_text() == "not a folder"
 
 
-@pytest.mark.skipif(not Path("/proc/self").is_dir(), reason="needs Linux's /proc")
+@pytest.mark.skipif(not Path("/proc/self").is_dir(),
+                    reason="needs Linux's /proc, a folder that refuses new files even to root; "
+                           "other systems have no such folder to test with")
 def test_reproduce_refuses_a_folder_it_cannot_write_in_before_any_work(capsys):
     # /proc refuses new files even to root, who passes every permission-bit check.
     start = time.perf_counter()

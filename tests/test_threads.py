@@ -9,7 +9,8 @@ from drake_cert.threads import torch_threads
 
 
 class OneThreadWorker:
-    """Sets one thread on construction, as the reproduction's workers do."""
+    """Sets one thread itself on construction (any worker may): the map still gives the
+    caller's count back."""
 
     def __init__(self):
         torch.set_num_threads(1)

@@ -54,9 +54,6 @@ class CalibrationWorker:
     """Computes the h pipeline's beta for one (preset, sigma) (an executor worker)."""
 
     def __init__(self, config: ReproduceConfig):
-        import torch
-
-        torch.set_num_threads(1)
         self.config, self.conditions = config, load_conditions()
 
     def __call__(self, task: CalibrationTask) -> float:
@@ -125,9 +122,6 @@ class ConformalWorker:
     """Computes g's robust conformal calibration for one (preset, sigma) (an executor worker)."""
 
     def __init__(self, config: ReproduceConfig):
-        import torch
-
-        torch.set_num_threads(1)
         self.config, self.conditions = config, load_conditions()
 
     def __call__(self, task: CalibrationTask):

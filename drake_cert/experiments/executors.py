@@ -2,7 +2,8 @@
 
 An executor maps a worker over tasks and returns the results in task order. The worker is
 built once per process (``make_worker()``; it loads models and designs once) and called as
-``worker(task)``. Results never depend on the executor or the number of workers: every task
+``worker(task)``; the executor runs workers on one torch thread each (workers do not set it).
+Results never depend on the executor or the number of workers: every task
 carries its own seeds, and the worker holds no state that changes its answers (caches only).
 ``on_result(index, result)`` sees each result as it arrives (in the driver: a caller stores
 it, so an interrupted run keeps what it finished); once ``stop()`` returns True no new task
@@ -44,8 +45,8 @@ class LocalExecutor:
         results: list[Any] = [None] * len(tasks)
         if not tasks:
             return results
-        # Workers set torch to one thread (as in a Ray actor); this process gets its own
-        # count back when the map ends.
+        # One torch thread, as in a Ray actor (the same arithmetic whatever the executor);
+        # this process gets its own count back when the map ends.
         with torch_threads(1):
             worker = make_worker()
             for index, task in enumerate(tasks):

@@ -54,12 +54,9 @@ class FrameWorker:
 
     def __init__(self, config: ReproduceConfig, betas: dict | None = None,
                  designs: list | None = None, conformal: dict | None = None):
-        import torch
-
         from drake_cert.experiments.episodes import EpisodeRunner
         from synthesis.table import synthesize_table
 
-        torch.set_num_threads(1)
         self.config = config
         self.vehicle, self.settings = load_vehicle(), load_settings()
         self.conditions = load_conditions()
@@ -268,5 +265,5 @@ def recompute_frame(config: ReproduceConfig, preset: str, position: int) -> list
     from drake_cert.threads import torch_threads
 
     config.validate()
-    with torch_threads(1):  # the worker's thread count, given back afterwards
+    with torch_threads(1):  # one thread, as the executors run a worker; given back afterwards
         return FrameWorker(config)(FrameTask(preset, position))
