@@ -45,7 +45,7 @@ def main() -> None:
     parser.add_argument("--conformal-per-class", type=int, default=d.conformal_per_class)
     parser.add_argument("--regression-per-class", type=int, default=d.regression_per_class)
     parser.add_argument("--attack-steps", type=int, default=d.attack_steps)
-    parser.add_argument("--precision", default=d.precision, choices=("fp32", "bf16"))
+    parser.add_argument("--precision", default="auto", choices=("auto", "fp32", "bf16"))
     parser.add_argument("--seed", type=int, default=d.seed)
     parser.add_argument("--store", default="results/perception_table")
     parser.add_argument("--out", default="docs/perception_table.md")

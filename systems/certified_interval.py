@@ -5,7 +5,9 @@ latest :class:`PerceptionResult` into a :class:`Decision`:
 
 - certified classification: the run-time interval at budget eps at the observed frame
   (:func:`runtime_classification_interval`: the narrowest contiguous label range T holding
-  the top label with ``R_T > eps``); its design is the table's design for T.
+  the top label with ``R_T > eps``; or, from a sequential decision,
+  :func:`runtime_decision_interval`: the range it certified); its design is the table's
+  design for T.
 - certified regression: ``[lower - beta, upper + beta]`` clipped to the envelope
   (:func:`runtime_interval`); its design is the narrowest design whose interval contains it
   and whose friction bound is at most the least friction a stiffness in it can mean
@@ -32,7 +34,11 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
 from drake_cert.certification.conformal import conformal_interval
-from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
+from drake_cert.certification.intervals import (
+    runtime_classification_interval,
+    runtime_decision_interval,
+    runtime_interval,
+)
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
@@ -212,6 +218,13 @@ class CertifiedInterval(LeafSystem):
                         else self._decision(p, index, "base", 0.0))
             if self.conformal is not None and p.certificate is not None:
                 return self._conformal_decision(p)
+            if p.decision is not None:  # sequential
+                rt = runtime_decision_interval(p.decision, self.conditions, self.preset,
+                                               self.label_names)
+                if not rt.certified or tuple(rt.labels) not in self._by_labels:
+                    return self.envelope_decision(p)
+                return self._decision(p, self._by_labels[tuple(rt.labels)], "certified",
+                                      rt.radius, rt.interval)
             if p.certificate is None or p.certificate.abstained:
                 return self.envelope_decision(p)
             rt = runtime_classification_interval(p.certificate, self.conditions, self.preset,

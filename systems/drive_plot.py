@@ -4,6 +4,7 @@ the certified interval against the true stiffness, one column per drive."""
 from __future__ import annotations
 
 import io
+import json
 
 import numpy as np
 
@@ -22,16 +23,21 @@ def tape_matrix(tape) -> np.ndarray:
 
 
 def tape_bytes(results, path: str) -> bytes:
-    """CSV (one block per drive, a ``pipeline`` column first) or NPZ (one array per drive)."""
+    """CSV (one block per drive, a ``pipeline`` column first, then one ``# summary`` comment
+    line per drive with its JSON summary: precision, seed, settings) or NPZ (one array per
+    drive and ``summaries_json``)."""
+    summaries = [json.dumps(r.summary, default=str) for r in results]
     if str(path).lower().endswith(".npz"):
         buf = io.BytesIO()
-        np.savez_compressed(buf, columns=np.array(TAPE_COLUMNS), **{
+        np.savez_compressed(buf, columns=np.array(TAPE_COLUMNS),
+                            summaries_json=np.array(summaries), **{
             f"{r.summary['pipeline']}_{i}": tape_matrix(r.tape) for i, r in enumerate(results)})
         return buf.getvalue()
     lines = ["pipeline," + ",".join(TAPE_COLUMNS)]
     for r in results:
         for row in tape_matrix(r.tape):
             lines.append(r.summary["pipeline"] + "," + ",".join(f"{v:.6g}" for v in row))
+    lines += [f"# summary {s}" for s in summaries]
     return ("\n".join(lines) + "\n").encode()
 
 

@@ -36,6 +36,9 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import LogVectorOutput, Saturation
 
+from drake_cert.certification.backends import resolve_backend
+from drake_cert.certification.intervals import candidate_ranges
+from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
@@ -102,6 +105,13 @@ class DrivingDiagram:
     tick_loggers: dict  # name -> VectorLogSink (camera period)
     initial_speed_mps: float
     vehicle: VehicleParams
+    seed_source: str = "scenario"  # "scenario" or "os-entropy" (the scenario's seed was null)
+
+
+def entropy_seed() -> int:
+    """A fresh 63-bit seed from the operating system's entropy (a deployment's noise: an
+    attacker who knows the seed knows the certificate's noise and can defeat it)."""
+    return int(np.random.SeedSequence().generate_state(2, np.uint64)[0] >> np.uint64(1))
 
 
 def with_overrides(scenario: Scenario, *, pipeline: str | None = None, attack: str | None = None,
@@ -153,6 +163,24 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
                                                                     streams.CALIBRATION))
 
 
+def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sigma: float):
+    """The module perception evaluates: ``model`` itself (torch) or its ONNX Runtime session
+    (fp32 or int8, the latter calibrated on noisy copies of calibration frames)."""
+    from drake_cert.certification.backends import evaluated_model
+
+    p = scenario.perception
+    frames = None
+    if p.quantization == "int8":
+        from drake_cert.perception.datasets import load_split
+
+        frames = load_split(p.preset, "calibration", conditions=conditions,
+                            frames_per_class=8).images
+    return evaluated_model(model, backend=p.backend, quantization=p.quantization,
+                           precision=resolve_precision(p.precision), calibration_frames=frames,
+                           sigma=max(sigma, 1e-3),  # base f (sigma 0): near-clean frames
+                           seed=streams.stream_seed(scenario.seed, streams.CALIBRATION))
+
+
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
                                     settings: Settings, conditions: ConditionsTable,
                                     designs: list[ControllerDesign],
@@ -169,6 +197,9 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     from drake_cert.perception.models import load_model
 
     scenario.validate("scenario")
+    seed_source = "scenario"
+    if scenario.seed is None:  # deployment: fresh noise, recorded so the drive can be replayed
+        scenario, seed_source = dataclasses.replace(scenario, seed=entropy_seed()), "os-entropy"
     p, cam, att = scenario.perception, scenario.camera, scenario.attack
     if scenario.controller.law != "piecewise_constant":
         raise ConfigError("the driving Diagram runs the piecewise-constant law (controller.law);"
@@ -179,8 +210,11 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma
-    # The attack and the certificate see the same model as evaluated (fp32 or bf16).
+    # The attack and the certificate see the same model as evaluated (fp32 or bf16; ONNX
+    # Runtime fp32 agrees with torch fp32 to float rounding; int8 is attacked through the fp32
+    # model's gradients and judged by the int8 model's outputs).
     model = with_precision(load_model(p.preset, p.task, sigma), p.precision)
+    evaluated = _evaluated_model(model, scenario, conditions, sigma)
     labels = list(conditions.preset(p.preset).labels)
     period = 1.0 / cam.rate_hz
     v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)
@@ -209,10 +243,11 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         sigma=sigma, task=p.task, seed=scenario.seed, steps=att.steps,
         noise_draws=att.noise_draws, frame_size=cam.frame_size))
     perception = add("perception_smoothing", PerceptionSmoothing(
-        model, mode=p.pipeline, task=p.task, sigma=sigma,
+        evaluated, mode=p.pipeline, task=p.task, sigma=sigma,
         n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
         offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
-        frame_size=cam.frame_size))
+        frame_size=cam.frame_size, decision=p.resolved_decision,
+        ranges=candidate_ranges(conditions, p.preset, labels)))
     interval = add("certified_interval", CertifiedInterval(
         table, conditions, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
         regression_beta=beta, conformal=conformal,
@@ -276,7 +311,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
                     perception=perception, interval=interval, controller=controller,
                     saturation=saturation, plant=plant)
     return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
-                          v0, vehicle)
+                          v0, vehicle, seed_source)
 
 
 @dataclasses.dataclass
@@ -355,7 +390,7 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
     tape, ticks = _tapes(built, context)
     summary = summarize_drive(tape, ticks, scenario=scenario, route=route,
                               simulated_s=context.get_time(), wall_s=wall,
-                              ending=ending["reason"])
+                              ending=ending["reason"], seed_source=built.seed_source)
     return DriveResult(tape, ticks, summary, route, built.vehicle.lane_width_m)
 
 
@@ -401,7 +436,8 @@ def time_left_lane(tape: DriveTape) -> float | None:
 
 
 def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
-                    simulated_s: float, wall_s: float, ending: str) -> dict:
+                    simulated_s: float, wall_s: float, ending: str,
+                    seed_source: str = "scenario") -> dict:
     """The ``drive --json`` object (DESIGN 7 metrics of one drive)."""
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
@@ -433,4 +469,10 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
         "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
         "seed": scenario.seed,
+        "seed_source": seed_source,
+        "precision": resolve_precision(scenario.perception.precision),
+        "decision": scenario.perception.resolved_decision,
+        "backend": resolve_backend(scenario.perception.backend,
+                                   resolve_precision(scenario.perception.precision)),
+        "quantization": scenario.perception.quantization,
     }

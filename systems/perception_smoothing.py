@@ -3,10 +3,15 @@
 A periodic unrestricted update at the camera rate (default offset T/4, after the camera's
 tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult`:
 
-- ``mode="certified"``, ``task="classify"``: the smoothed classifier's certificate at the
-  observed frame (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation
-  samples, joint Clopper-Pearson bounds at ``alpha``), from which the run-time interval of
-  any label range is read off (``systems.certified_interval``).
+- ``mode="certified"``, ``task="classify"``, ``decision="sequential"``: the sequential
+  decision at budget eps (:meth:`SmoothedClassifier.decide`: the top label from n0 selection
+  samples, or from the base model's prediction on the frame when n0 = 0; up to n estimation
+  samples, stopping as soon as the narrowest certifiable label range is decided), the
+  run-time interval's range or an abstention.
+- ``decision="fixed"``: the fixed-n certificate at the observed frame
+  (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation samples, joint
+  Clopper-Pearson bounds at ``alpha``), from which the run-time interval of any label range
+  is read off (``systems.certified_interval``); the robust conformal interval needs it.
 - ``mode="certified"``, ``task="regress"``: median smoothing's ``(median, lower, upper)`` at
   budget ``eps`` (:meth:`MedianSmoothedRegressor.certify_interval`).
 - ``mode="base"``: the raw prediction of the model f (label, or stiffness in N/rad): the
@@ -15,7 +20,8 @@ tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult
 A frame that is not a finite float [3, H, W] image in [0, 1] of the expected size gives
 ``frame_ok = False`` and the reason in ``error`` (never an exception, never a prediction).
 The certificate of tick k draws its noise from the stream ``(seed, CERTIFICATE, k)``.
-Cost per tick: n0 + n forward passes of the model (about 0.25 s per 1000 on one core).
+Cost per tick: n0 + n forward passes of the model with a fixed-n certificate; a sequential
+decision draws between a few dozen and n (``PerceptionResult.samples``).
 """
 
 import dataclasses
@@ -27,6 +33,7 @@ from pydrake.systems.framework import EventStatus, LeafSystem
 
 from drake_cert.certification.classifier import (
     ClassCertificate,
+    SequentialDecision,
     SmoothedClassifier,
     check_enough_samples,
 )
@@ -39,6 +46,7 @@ from systems.camera import CameraFrame
 
 MODES = ("certified", "base")
 TASKS = ("classify", "regress")
+DECISIONS = ("sequential", "fixed")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -52,7 +60,9 @@ class PerceptionResult:
     error: str  # why frame_ok is False ("" otherwise)
     mode: str  # "certified" or "base"
     task: str  # "classify" or "regress"
-    certificate: ClassCertificate | None = None  # certified classification
+    certificate: ClassCertificate | None = None  # certified classification (fixed n)
+    decision: SequentialDecision | None = None  # certified classification (sequential)
+    samples: int = 0  # noisy samples drawn at this tick (selection included)
     base_label: int | None = None  # raw label of f (classification, both modes)
     regression: tuple[float, float, float] | None = None  # certified (median, lower, upper)
     base_value_n_per_rad: float | None = None  # raw stiffness prediction of f (base regress)
@@ -84,6 +94,9 @@ class PerceptionSmoothing(LeafSystem):
         eps: regression budget of the median bounds (L2, pixel units).
         frame_size: expected frames are [3, frame_size, frame_size].
         compile: compile the model for the smoothing (see :class:`SmoothedClassifier`).
+        decision: "sequential" or "fixed" (classification; regression is always fixed-n).
+        ranges: sequential only: the candidate label ranges of a top label, most preferred
+            first (:func:`drake_cert.certification.intervals.candidate_ranges`); default {top}.
     """
 
     def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
@@ -91,16 +104,22 @@ class PerceptionSmoothing(LeafSystem):
                  alpha: float = 0.001, batch_size: int = 500, rate_hz: float = 10.0,
                  offset_s: float | None = None, seed: int = 0,
                  label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
-                 frame_size: int = 64, compile: bool = False):
+                 frame_size: int = 64, compile: bool = False, decision: str = "fixed",
+                 ranges=None):
         super().__init__()
         if mode not in MODES:
             raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
         if task not in TASKS:
             raise ConfigError(f"perception task {task!r}; expected one of {', '.join(TASKS)}")
+        if decision not in DECISIONS:
+            raise ConfigError(f"perception decision {decision!r}; expected one of "
+                              f"{', '.join(DECISIONS)}")
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"perception: rate_hz = {rate_hz!r} must be positive")
         self.model = model.eval()
         self.mode, self.task = mode, task
+        self.decision = decision if task == "classify" else "fixed"
+        self.ranges = ranges
         self.n0, self.n, self.alpha = int(n0), int(n), float(alpha)
         self.batch_size = int(batch_size)
         self.seed = int(seed)
@@ -114,7 +133,8 @@ class PerceptionSmoothing(LeafSystem):
             if task == "classify":
                 if len(self.label_names) < 2:
                     raise ConfigError("perception: classification needs label_names (>= 2)")
-                check_enough_samples(self.n, self.alpha, len(self.label_names))
+                if self.decision == "fixed":
+                    check_enough_samples(self.n, self.alpha, len(self.label_names))
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
                                                   compile=compile)
             else:
@@ -160,9 +180,18 @@ class PerceptionSmoothing(LeafSystem):
                     base_label = int(self.model(x[None]).argmax(dim=1)[0])
                 if self.mode == "base":
                     return dataclasses.replace(base, base_label=base_label)
+                if self.decision == "sequential":
+                    d = self._smooth.decide(
+                        x, self.eps, self.alpha, self.n, self.batch_size, self.ranges,
+                        seed=seed, selection_n=self.n0,
+                        selection_seed=streams.stream_seed(self.seed, streams.SELECTION,
+                                                           frame.tick))
+                    return dataclasses.replace(base, base_label=base_label, decision=d,
+                                               samples=d.samples)
                 cert = self._smooth.certify(x, self.n0, self.n, self.alpha, self.batch_size,
                                             seed=seed)
-                return dataclasses.replace(base, base_label=base_label, certificate=cert)
+                return dataclasses.replace(base, base_label=base_label, certificate=cert,
+                                           samples=self.n0 + self.n)
             if self.mode == "base":
                 with torch.inference_mode():
                     value = float(self.model(x[None]).reshape(-1)[0])
@@ -171,7 +200,7 @@ class PerceptionSmoothing(LeafSystem):
                 return dataclasses.replace(base, base_value_n_per_rad=value)
             median, lower, upper = self._smooth.certify_interval(x, self.eps, self.n, self.alpha,
                                                                  self.batch_size, seed=seed)
-            return dataclasses.replace(base, regression=(median, lower, upper))
+            return dataclasses.replace(base, regression=(median, lower, upper), samples=self.n)
         except CertificationError as e:
             return dataclasses.replace(base, frame_ok=False, error=str(e))
 

@@ -10,6 +10,7 @@ Shipped scenarios live in ``drake_cert/data/scenarios/<name>.yaml``.
 
 
 import dataclasses
+import typing
 import math
 from importlib import resources
 from pathlib import Path
@@ -68,7 +69,7 @@ class PerceptionSettings:
     sigma: float = 0.25  # smoothing noise level (pixel units in [0, 1]) of the certified model
     base_sigma: float = 0.0  # noise level of the model the base pipeline runs (0: plain f)
     eps: float = 0.5  # L2 budget (pixel units) the run-time interval is certified against
-    n0: int = 100  # selection samples per certificate
+    n0: int = 100  # selection samples per certificate (sequential: 0 = the base model's label)
     n: int = 1000  # estimation samples per certificate
     alpha: float = 0.001  # failure probability of each certificate
     batch_size: int = 500  # noisy copies per model evaluation
@@ -77,20 +78,46 @@ class PerceptionSettings:
     calibration_n: int = 500  # regression: samples per calibration frame
     alpha_c: float = 0.01  # regression: conformal miscoverage
     alpha_m: float = 0.001  # regression: level of the calibration median interval
-    precision: str = "fp32"  # model arithmetic, "fp32" or "bf16" (attack and certificate alike)
+    precision: str = "auto"  # "auto" (bf16 only if native; DRAKE_CERT_PRECISION), fp32, bf16
+    decision: str = "auto"  # "sequential" (n: the most samples), "fixed"; auto: sequential if apt
+    backend: str = "auto"  # "torch", "onnxruntime"; auto: onnxruntime if installed and fp32
+    quantization: str = "none"  # "none" or "int8" (onnxruntime; the certificate is the int8 one)
     interval: str = "safe_set"  # classification interval: "safe_set" (paper) or "conformal"
     conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 124)
 
+    @property
+    def resolved_decision(self) -> str:
+        """"sequential" or "fixed": what ``decision`` means for this task and interval."""
+        if self.decision != "auto":
+            return self.decision
+        return "sequential" if self.task == "classify" and self.interval == "safe_set" \
+            else "fixed"
+
     def validate(self, where: str) -> None:
         _one_of(self.task, TASKS, "perception.task", where)
-        _one_of(self.precision, ("fp32", "bf16"), "perception.precision", where)
+        _one_of(self.precision, ("auto", "fp32", "bf16"), "perception.precision", where)
         _one_of(self.interval, ("safe_set", "conformal"), "perception.interval", where)
+        _one_of(self.decision, ("auto", "sequential", "fixed"), "perception.decision", where)
+        _one_of(self.backend, ("auto", "torch", "onnxruntime"), "perception.backend", where)
+        _one_of(self.quantization, ("none", "int8"), "perception.quantization", where)
+        if self.quantization == "int8" and self.backend != "onnxruntime":
+            raise ConfigError(f"{where}: perception.quantization = int8 needs backend "
+                              "onnxruntime")
+        if self.decision == "sequential" and (self.task != "classify"
+                                              or self.interval != "safe_set"):
+            raise ConfigError(f"{where}: perception.decision = sequential needs task classify "
+                              "and interval safe_set (the regression and the robust conformal "
+                              "interval use the fixed-n certificate); use fixed or auto")
         _one_of(self.pipeline, PIPELINES, "perception.pipeline", where)
         _positive(self.sigma, "perception.sigma", where)
         _non_negative(self.base_sigma, "perception.base_sigma", where)
         _non_negative(self.eps, "perception.eps", where)
-        for key in ("n0", "n", "batch_size", "calibration_frames_per_class", "calibration_n",
-                    "conformal_frames_per_class"):
+        if self.resolved_decision == "sequential" and self.n0 < 0:
+            raise ConfigError(f"{where}: perception.n0 = {self.n0} must be >= 0 (0: the base "
+                              "model's label on the frame picks the range to test)")
+        keys = ("n", "batch_size", "calibration_frames_per_class", "calibration_n",
+                "conformal_frames_per_class")
+        for key in keys if self.resolved_decision == "sequential" else ("n0", *keys):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)} must be a "
                                   "positive integer")
@@ -153,7 +180,7 @@ class Scenario:
     """One drive, reproducible from this file alone."""
 
     name: str = ""  # short name of the scenario
-    seed: int = 0  # seed of every random stream (route, camera, attack, certificate)
+    seed: typing.Optional[int] = 0  # seed of every random stream; null: OS entropy (deployment)
     transition_m: float = 10.0  # curvature ramps over this length at segment boundaries (m)
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)
@@ -167,8 +194,8 @@ class Scenario:
     def validate(self, where: str = "scenario") -> None:
         if not self.name:
             raise ConfigError(f"{where}: name must not be empty")
-        if self.seed < 0:
-            raise ConfigError(f"{where}: seed = {self.seed} must be >= 0")
+        if self.seed is not None and self.seed < 0:
+            raise ConfigError(f"{where}: seed = {self.seed} must be >= 0 (or null)")
         _positive(self.transition_m, "transition_m", where)
         _non_negative(self.t_final_s, "t_final_s", where)
         if not self.route:

@@ -2,8 +2,8 @@
 
 Every random draw of a drive comes from ``numpy.random.SeedSequence([seed, purpose, *keys])``
 with a distinct ``purpose`` per use: the route's true stiffness per segment, the camera's
-frame per tick, the attack per tick, the certificate per tick. Same scenario seed, same
-draws; different purposes never share a stream.
+frame per tick, the attack per tick, the certificate and its selection draw per tick. Same
+scenario seed, same draws; different purposes never share a stream.
 """
 
 import numpy as np
@@ -15,6 +15,7 @@ CAMERA = 2  # the rendered (or chosen) frame of each tick (key: tick)
 ATTACK = 3  # the attack's random start and noise draws at each tick (key: tick)
 CERTIFICATE = 4  # the smoothing noise of each tick's certificate (key: tick)
 CALIBRATION = 5  # the regression's conformal calibration before a drive (no key)
+SELECTION = 6  # the selection samples of each tick's sequential decision (key: tick)
 
 
 def stream_seed(seed: int, purpose: int, *keys: int) -> int:

@@ -10,13 +10,19 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
-from scipy.stats import binomtest
+from scipy.stats import binomtest, norm
 
-from drake_cert.certification.sampler import SmoothedModel, make_generator
+from drake_cert.certification.sampler import (
+    SmoothedModel,
+    check_frame,
+    check_frame_size,
+    make_generator,
+)
 from drake_cert.certification.statistics import (
     check_alpha,
     check_count,
     clopper_pearson_bounds,
+    look_plan,
     safe_set_radius,
 )
 from drake_cert.errors import CertificationError
@@ -55,6 +61,49 @@ class ClassCertificate:
 
 
 SafeSet = Callable[[int], Iterable[int]] | Mapping[int, Iterable[int]] | Sequence[Iterable[int]]
+CandidateRanges = Callable[[int], Sequence[Iterable[int]]]
+
+@dataclasses.dataclass(frozen=True)
+class SequentialDecision:
+    """Outcome of :meth:`SmoothedClassifier.decide`: is a label range certified at radius eps?
+
+    ``labels`` is the certified range T (the first candidate, in the caller's order of
+    preference, that was certified), empty on abstain. ``samples`` counts every noisy sample
+    drawn, selection included (``selection_samples`` of them chose the top label; 0 when the
+    base model's prediction on the observed frame chose it). ``radius`` is the radius the
+    bounds certify for T (>= eps when certified, 0 otherwise); ``p_low_top`` and
+    ``p_low_range`` the lower confidence bounds behind it, on the top label's probability and
+    on T's total mass. ``bound`` names the confidence sequence and ``alpha`` its level.
+    """
+
+    certified: bool
+    labels: tuple[int, ...]
+    top_label: int
+    samples: int
+    selection_samples: int
+    radius: float
+    p_low_top: float
+    p_low_range: float
+    eps: float
+    alpha: float
+    bound: str
+    counts: np.ndarray
+    reason: str  # "certified", "futile" (no candidate can be certified) or "n_max"
+
+    @property
+    def abstained(self) -> bool:
+        return not self.certified
+
+
+def sequential_radius(p_low_top: float, p_low_range: float, sigma: float) -> float:
+    """Certified radius of a range T from lower bounds on its top label's probability and on
+    T's mass: ``sigma/2 * (PhiInv(p_low_top) + PhiInv(p_low_range))``, 0 when not positive.
+
+    This is :func:`safe_set_radius` with the outside term bounded by ``1 - P(T)``:
+    ``PhiInv(1 - P(T)) = -PhiInv(P(T))``; for T = {a} it is Cohen's ``sigma PhiInv(p_low)``.
+    """
+    r = 0.5 * sigma * (float(norm.ppf(p_low_top)) + float(norm.ppf(p_low_range)))
+    return r if r > 0 else 0.0
 
 
 
@@ -156,6 +205,125 @@ class SmoothedClassifier(SmoothedModel):
         return ClassCertificate(label=label, radius=radius if radius > 0 else 0.0,
                                 labels=members, top_label=top, counts=counts, p_low=p_low,
                                 p_up=p_up, sigma=self.sigma, alpha=float(alpha))
+
+    def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
+               ranges: CandidateRanges | None = None, *, seed: int | None = None,
+               selection_n: int = 0, selection_seed: int | None = None,
+               bound: str = "looks", first_look: int = 32) -> SequentialDecision:
+        """Is a label range certified at radius ``eps`` around the observed frame ``x``?
+        Decided sequentially: it stops as soon as the answer is known either way.
+
+        The top label a is the base model's prediction on ``x`` (``selection_n = 0``, one
+        noise-free forward pass) or the most frequent label among ``selection_n`` noisy
+        samples drawn from ``selection_seed`` (an independent stream; ties go to the
+        least-friction label). Either way a is fixed before any estimation sample is drawn,
+        so the bounds below hold for it as for any fixed label. ``ranges(a)`` lists the
+        candidate label ranges, each containing a, most preferred first (default: only {a}).
+
+        Estimation samples are examined at looks fixed in advance (:func:`look_plan`:
+        Clopper-Pearson bounds at geometric looks with alpha split over the looks, or a
+        beta-mixture confidence sequence). At each look every candidate T gets
+        ``R_T = sigma/2 (PhiInv(L_a) + PhiInv(L_T))`` (:func:`sequential_radius`) from lower
+        bounds on a's probability and on T's mass; alpha is split over the m distinct
+        quantities and the looks, so all bounds hold at every look at once with probability
+        at least ``1 - alpha`` and stopping at any look keeps the guarantee (re-checking a
+        fixed-n bound after each batch would not). With probability at least ``1 - alpha``
+        over the noise, the exact smoothed label ``g(z)`` lies in the returned T for every z
+        with ``||z - x||_2 < radius`` (radius > eps). It stops when the most preferred
+        candidate not yet ruled out is certified (returned), when every candidate is ruled
+        out by the upper bounds (futility: costs no soundness; abstain), or at ``n_max``
+        (the most preferred candidate certified by then, or abstain).
+
+        Args:
+            x: the observed frame [C, H, W] in [0, 1].
+            eps: the radius to certify (L2, pixel units), >= 0.
+            alpha: failure probability of the decision.
+            n_max: most estimation samples to draw.
+            batch_size: most noisy copies per forward pass.
+            seed: stream of the estimation noise.
+            bound: "looks" (default) or "mixture"; first_look: the first look's least size.
+        """
+        check_alpha(alpha)
+        check_count(n_max, "n_max")
+        check_count(batch_size, "batch_size")
+        if not (math.isfinite(eps) and eps >= 0):
+            raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
+        if isinstance(selection_n, bool) or not isinstance(selection_n, (int, np.integer)) \
+                or selection_n < 0:
+            raise CertificationError(f"selection_n = {selection_n!r} must be an integer >= 0")
+        if selection_n:
+            select_gen = make_generator(selection_seed, self.device)
+            top = select_label(self.sample_counts(x, int(selection_n), batch_size, select_gen,
+                                                  selection=True))
+        else:
+            top = self.base_label(x)
+        candidates = self._candidates(ranges, top)
+        masses = sorted({c for c in candidates if len(c) > 1})
+        plan = look_plan(int(n_max), alpha, 1 + len(masses), bound=bound,
+                         first_look=first_look, batch_size=int(batch_size))
+        k = self.num_classes
+        counts = np.zeros(k, dtype=np.int64)
+        gen = make_generator(seed, self.device)
+        best: tuple[int, float, float, float] | None = None  # (candidate index, R, L_a, L_T)
+        reason = "n_max"
+        with torch.inference_mode():
+            for look in plan.looks:
+                for out in self._sampler.outputs(x, look - int(counts.sum()), int(batch_size),
+                                                 gen):
+                    counts += torch.bincount(out.argmax(dim=1), minlength=k).cpu().numpy()
+                low_a, up_a = plan.bounds(int(counts[top]), look)
+                bounds = {c: plan.bounds(int(counts[list(c)].sum()), look) for c in masses}
+                best, live = None, None
+                for i, c in enumerate(candidates):
+                    low_t, up_t = bounds[c] if len(c) > 1 else (low_a, up_a)
+                    radius = sequential_radius(low_a, low_t, self.sigma)
+                    if radius > eps and best is None:
+                        best = (i, radius, low_a, low_t)
+                    possible = 0.5 * self.sigma * (norm.ppf(up_a) + norm.ppf(up_t)) > eps
+                    if possible and live is None:
+                        live = i
+                if live is None:
+                    reason = "futile"
+                    break
+                if best is not None and best[0] <= live:
+                    break
+        samples = int(counts.sum()) + int(selection_n)
+        common = dict(top_label=top, samples=samples, selection_samples=int(selection_n),
+                      eps=float(eps), alpha=float(alpha), bound=plan.name, counts=counts)
+        if best is None:
+            return SequentialDecision(certified=False, labels=(), radius=0.0, p_low_top=0.0,
+                                      p_low_range=0.0, reason=reason, **common)
+        i, radius, low_a, low_t = best
+        return SequentialDecision(certified=True, labels=candidates[i], radius=radius,
+                                  p_low_top=low_a, p_low_range=low_t, reason="certified",
+                                  **common)
+
+    def base_label(self, x: torch.Tensor) -> int:
+        """The base model's label on the frame itself (no noise), as evaluated."""
+        check_frame(x)
+        check_frame_size(x, self._sampler.base)
+        with torch.inference_mode():
+            out = self._sampler.base(x.to(self.device, torch.float32)[None])
+        if out.dim() != 2 or out.shape[1] != self.num_classes:
+            raise CertificationError(f"base model returned scores of shape {list(out.shape)}; "
+                                     f"expected [1, {self.num_classes}]")
+        return int(out.argmax(dim=1)[0])
+
+    def _candidates(self, ranges: CandidateRanges | None, top: int) -> list[tuple[int, ...]]:
+        if ranges is None:
+            return [(top,)]
+        try:
+            listed = [tuple(sorted(set(int(t) for t in c))) for c in ranges(top)]
+        except (TypeError, ValueError):
+            raise CertificationError("ranges must map a label to a list of label ranges "
+                                     f"(sequences of label indices); got {ranges!r}") from None
+        for c in listed:
+            if top not in c or not all(0 <= t < self.num_classes for t in c):
+                raise CertificationError(f"candidate range {list(c)} of label {top} must "
+                                         f"contain it and lie within 0..{self.num_classes - 1}")
+        if not listed:
+            raise CertificationError(f"ranges({top}) listed no candidate range")
+        return listed
 
     def _members(self, safe_set: SafeSet, top: int) -> tuple[int, ...]:
         try:

@@ -8,7 +8,7 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-from drake_cert.certification.classifier import ClassCertificate
+from drake_cert.certification.classifier import ClassCertificate, SequentialDecision
 from drake_cert.errors import CertificationError
 
 
@@ -111,3 +111,48 @@ def runtime_classification_interval(certificate: ClassCertificate, table, preset
 def _preference(cert: RuntimeCertificate) -> tuple[float, float, int]:
     """Narrowest hull first; ties: the lower C_lo, then the fewer labels (equal hulls)."""
     return (cert.width_n_per_rad, cert.stiffness_lo_n_per_rad, len(cert.labels))
+
+
+def candidate_ranges(table, preset: str, label_names: Sequence[str] | None = None):
+    """The candidates of a sequential decision (:meth:`SmoothedClassifier.decide`): a function
+    of the top label's index giving the preset's contiguous label ranges that hold it, as
+    label-index tuples, in the order :func:`runtime_classification_interval` prefers them
+    (narrowest hull, then the lower C_lo, then the fewer labels); the whole family (the
+    fallback) is not a candidate. Depends on the table only, never on the noise."""
+    names = list(label_names) if label_names is not None else list(table.preset(preset).labels)
+    index = {name: i for i, name in enumerate(names)}
+    family = tuple(table.preset(preset).labels)
+    by_label: dict[int, list[tuple[int, ...]]] = {i: [] for i in range(len(names))}
+    ranked = []
+    for rng in table.contiguous_ranges(preset):
+        if len(rng) == len(family):
+            continue
+        if any(name not in index for name in rng):
+            raise CertificationError(f"preset {preset!r} label {rng} not among the classifier's "
+                                     f"labels {names}")
+        lo, hi = table.hull(rng)
+        ranked.append(((hi - lo, lo, len(rng)), tuple(index[name] for name in rng)))
+    for _, members in sorted(ranked):
+        for i in members:
+            by_label[i].append(members)
+    return lambda top: by_label[int(top)]
+
+
+def runtime_decision_interval(decision: SequentialDecision, table, preset: str,
+                              label_names: Sequence[str] | None = None) -> RuntimeCertificate:
+    """The run-time interval of a sequential decision at budget eps: the hull of the certified
+    range's stiffness intervals, or the preset's envelope (``certified`` False) on abstain.
+
+    Same guarantee as :func:`runtime_classification_interval`: with probability at least
+    ``1 - alpha`` over the noise, ``g(x)`` of the clean frame lies in the range, and under the
+    standing assumption the true stiffness lies in the hull.
+    """
+    names = list(label_names) if label_names is not None else list(table.preset(preset).labels)
+    envelope = table.envelope(preset)
+    if not decision.certified:
+        return RuntimeCertificate(tuple(table.preset(preset).labels), envelope[0], envelope[1],
+                                  0.0, False)
+    chosen = {names[i] for i in decision.labels}
+    labels = tuple(name for name in table.preset(preset).labels if name in chosen)
+    lo, hi = table.hull(labels)
+    return RuntimeCertificate(labels, lo, hi, decision.radius, True)

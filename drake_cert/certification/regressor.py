@@ -10,16 +10,41 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 import torch
+from scipy.stats import norm
 
-from drake_cert.certification.sampler import SmoothedModel, make_generator
+from drake_cert.certification.sampler import (
+    SmoothedModel,
+    check_frame,
+    check_frame_size,
+    make_generator,
+)
 from drake_cert.certification.statistics import (
+    check_alpha,
     check_count,
     conformal_beta,
     conformity_score,
+    look_plan,
     percentile_bound_indices,
     percentile_bounds,
 )
 from drake_cert.errors import CertificationError
+
+
+@dataclasses.dataclass(frozen=True)
+class MedianDecision:
+    """Outcome of :meth:`MedianSmoothedRegressor.decide`: the first candidate interval
+    ``(lo, hi)`` (N/rad) certified to hold the smoothed median of every frame within eps, or
+    None on abstain; ``index`` its place among the candidates (-1 on abstain)."""
+
+    certified: bool
+    interval: tuple[float, float] | None
+    index: int
+    base_value: float  # the base model's output on the observed frame (chose the candidates)
+    samples: int
+    eps: float
+    alpha: float
+    bound: str
+    reason: str  # "certified", "futile" or "n_max"
 
 
 class MedianSmoothedRegressor(SmoothedModel):
@@ -69,6 +94,81 @@ class MedianSmoothedRegressor(SmoothedModel):
         y = self.sample_sorted(x, n, batch_size, make_generator(seed, self.device))
         lower, upper = percentile_bounds(y, eps, self.sigma, alpha)
         return float(y[math.ceil(n / 2) - 1]), lower, upper
+
+
+    def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
+               intervals: Callable[[float], Sequence[tuple[float, float]]], *,
+               seed: int | None = None, bound: str = "looks",
+               first_look: int = 32) -> MedianDecision:
+        """Is the smoothed median of every frame within ``eps`` of ``x`` inside one of the
+        candidate intervals? Decided sequentially (a confidence sequence for quantiles).
+
+        Chiang et al.: for ``||z - x|| <= eps``, ``h_pLow(x) <= h_0.5(z) <= h_pHigh(x)`` with
+        ``pHigh = Phi(eps/sigma) = 1 - pLow``. With y the base output under noise at x:
+        ``P(y <= hi) > pHigh`` implies ``h_pHigh(x) <= hi``, and ``P(y >= lo) > pHigh`` implies
+        ``h_pLow(x) >= lo``. Each is a Bernoulli mean, bounded at looks fixed in advance
+        (:func:`look_plan`; alpha split over the m distinct ends tested and the looks), so the
+        decision may stop at any look: with probability at least ``1 - alpha``, a certified
+        ``(lo, hi)`` holds ``h_0.5(z)`` for every such z.
+
+        ``intervals(v)`` lists the candidates, most preferred first, given v, the base
+        model's output on ``x`` itself (noise-free, so chosen before any sample is drawn).
+        Stops at the most preferred candidate not yet ruled out once it is certified, when
+        all are ruled out (futility, free), or at ``n_max``.
+        """
+        check_alpha(alpha)
+        check_count(n_max, "n_max")
+        check_count(batch_size, "batch_size")
+        if not (math.isfinite(eps) and eps >= 0):
+            raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
+        check_frame(x)
+        check_frame_size(x, self._sampler.base)
+        with torch.inference_mode():
+            base_value = float(self._sampler.base(x.to(self.device, torch.float32)[None])
+                               .reshape(-1)[0])
+        if not math.isfinite(base_value):
+            raise CertificationError("regressor returned a non-finite output on the frame")
+        candidates = [(float(lo), float(hi)) for lo, hi in intervals(base_value)]
+        if not candidates or any(not lo <= hi for lo, hi in candidates):
+            raise CertificationError(f"candidate intervals {candidates} must be a non-empty "
+                                     "list of (lo, hi) with lo <= hi")
+        his = sorted({hi for _, hi in candidates})
+        los = sorted({lo for lo, _ in candidates})
+        plan = look_plan(int(n_max), alpha, len(his) + len(los), bound=bound,
+                         first_look=first_look, batch_size=int(batch_size))
+        p_high = float(norm.cdf(eps / self.sigma))
+        below = dict.fromkeys(his, 0)  # samples with y <= hi
+        above = dict.fromkeys(los, 0)  # samples with y >= lo
+        t, gen, chosen, reason = 0, make_generator(seed, self.device), -1, "n_max"
+        with torch.inference_mode():
+            for look in plan.looks:
+                for out in self._sampler.outputs(x, look - t, int(batch_size), gen):
+                    y = out.reshape(-1)
+                    if not torch.isfinite(y).all():
+                        raise CertificationError("regressor returned NaN or infinite outputs")
+                    for hi in his:
+                        below[hi] += int((y <= hi).sum())
+                    for lo in los:
+                        above[lo] += int((y >= lo).sum())
+                    t += int(y.shape[0])
+                hi_b = {hi: plan.bounds(below[hi], t) for hi in his}
+                lo_b = {lo: plan.bounds(above[lo], t) for lo in los}
+                live = next((i for i, (lo, hi) in enumerate(candidates)
+                             if hi_b[hi][1] > p_high and lo_b[lo][1] > p_high), None)
+                if live is None:
+                    reason = "futile"
+                    break
+                lo, hi = candidates[live]
+                if hi_b[hi][0] > p_high and lo_b[lo][0] > p_high:
+                    chosen, reason = live, "certified"
+                    break
+        if chosen < 0:  # at n_max: the most preferred candidate certified by then, if any
+            chosen = next((i for i, (lo, hi) in enumerate(candidates)
+                           if hi_b[hi][0] > p_high and lo_b[lo][0] > p_high), -1) \
+                if reason == "n_max" else -1
+        return MedianDecision(chosen >= 0, candidates[chosen] if chosen >= 0 else None, chosen,
+                              base_value, t, float(eps), float(alpha), plan.name,
+                              "certified" if chosen >= 0 else reason)
 
 
 @dataclasses.dataclass(frozen=True)

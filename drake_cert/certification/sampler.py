@@ -8,6 +8,7 @@ import copy
 import ctypes
 import ctypes.util
 import functools
+import os
 import sys
 import time
 import warnings
@@ -198,6 +199,11 @@ def make_generator(seed: int | None, device: torch.device) -> torch.Generator | 
 
 
 PRECISIONS = ("fp32", "bf16")
+"""Arithmetic a base model can be evaluated in."""
+PRECISION_SETTINGS = ("auto", *PRECISIONS)
+"""What a setting may say: ``auto`` is resolved by :func:`resolve_precision`."""
+PRECISION_ENV = "DRAKE_CERT_PRECISION"
+"""Environment variable that fixes what ``auto`` means for a whole process (fp32 or bf16)."""
 
 
 class Bfloat16Model(torch.nn.Module):
@@ -207,7 +213,8 @@ class Bfloat16Model(torch.nn.Module):
     frame to bfloat16 is part of this base model, so the Gaussian noise is still drawn and
     added in float32, as the certificates assume; they are certificates of ``f'`` (not of the
     float32 model), so attacks, calibration and certification must all use this same module
-    (:func:`with_precision`). ~1.5-1.8x faster than float32 on CPUs with AVX512-BF16/AMX.
+    (:func:`with_precision`). ~1.5-1.8x faster than float32 on CPUs with AVX512-BF16/AMX, and
+    ~8x slower where bfloat16 is emulated (AVX2 only): ``auto`` picks it only where native.
     """
 
     def __init__(self, base: torch.nn.Module):
@@ -233,11 +240,33 @@ def bf16_supported() -> bool:
     return "avx512_bf16" in flags or "amx_bf16" in flags
 
 
+def resolve_precision(precision: str = "auto") -> str:
+    """The arithmetic a setting means on this machine: "fp32" or "bf16".
+
+    "fp32" and "bf16" mean themselves. "auto" (the default everywhere) means the value of the
+    environment variable ``DRAKE_CERT_PRECISION`` when it is set (so a CPU with native
+    bfloat16 can run as one without), else "bf16" where :func:`bf16_supported` and "fp32"
+    elsewhere. Certificates are those of the model as evaluated, so record what this returns
+    beside every result. Raises :class:`CertificationError` for any other value.
+    """
+    if precision not in PRECISION_SETTINGS:
+        raise CertificationError(f"precision {precision!r} is not one of "
+                                 f"{', '.join(PRECISION_SETTINGS)}")
+    if precision != "auto":
+        return precision
+    forced = os.environ.get(PRECISION_ENV, "").strip()
+    if forced:
+        if forced not in PRECISIONS:
+            raise CertificationError(f"{PRECISION_ENV}={forced!r} must be one of "
+                                     f"{', '.join(PRECISIONS)} (or unset)")
+        return forced
+    return "bf16" if bf16_supported() else "fp32"
+
+
 def with_precision(model: torch.nn.Module, precision: str) -> torch.nn.Module:
-    """``model`` itself ("fp32") or its :class:`Bfloat16Model` ("bf16"), in eval mode."""
-    if precision not in PRECISIONS:
-        raise CertificationError(f"precision {precision!r} is not one of {', '.join(PRECISIONS)}")
-    if precision == "fp32" or isinstance(model, Bfloat16Model):
+    """``model`` itself (fp32) or its :class:`Bfloat16Model` (bf16), in eval mode; "auto" is
+    resolved by :func:`resolve_precision`."""
+    if resolve_precision(precision) == "fp32" or isinstance(model, Bfloat16Model):
         return model
     return Bfloat16Model(model).eval()
 
@@ -250,8 +279,9 @@ class SmoothedModel:
         if not isinstance(base, torch.nn.Module):
             raise CertificationError(f"base model must be a torch.nn.Module, got "
                                      f"{type(base).__name__}")
-        self._sampler = NoisySampler(with_precision(base, precision), sigma, device, compile)
-        self.precision = precision
+        self.precision = resolve_precision(precision)
+        self._sampler = NoisySampler(with_precision(base, self.precision), sigma, device,
+                                     compile)
         self.sigma = self._sampler.sigma
         self.device = self._sampler.device
 

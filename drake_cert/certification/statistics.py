@@ -5,10 +5,13 @@ and the argument checks they share. Pure functions of numbers; no model, no torc
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterable, Sequence
 
 import numpy as np
+from scipy.optimize import brentq
+from scipy.special import betaln
 from scipy.stats import beta as beta_dist
 from scipy.stats import binom, norm
 
@@ -52,12 +55,120 @@ def clopper_pearson_bounds(counts: Sequence[int] | np.ndarray,
     n = int(counts.sum())
     if n <= 0:
         raise CertificationError("counts sum to 0: no samples to bound")
-    level = alpha / (2 * counts.size)
-    k = counts.astype(np.float64)
-    # Beta quantiles are undefined at k = 0 (lower) and k = n (upper): the bounds are 0 and 1 there.
-    p_low = np.where(counts > 0, beta_dist.ppf(level, np.maximum(k, 1), n - k + 1), 0.0)
-    p_up = np.where(counts < n, beta_dist.ppf(1 - level, k + 1, np.maximum(n - k, 1)), 1.0)
-    return p_low, p_up
+    return clopper_pearson_one_sided(counts, n, alpha / (2 * counts.size))
+
+
+def clopper_pearson_one_sided(successes, trials: int, level: float):
+    """One-sided Clopper-Pearson bounds ``(low, up)`` on a binomial probability, each at
+    ``level``: ``P(p < low) <= level`` and ``P(p > up) <= level`` for a fixed number of trials.
+    ``successes`` may be an array (the bounds are then arrays). Exact (beta quantiles); 0 and
+    1 where the quantile is undefined (no successes, no failures)."""
+    k = np.asarray(successes, dtype=np.float64)
+    n = float(trials)
+    low = np.where(k > 0, beta_dist.ppf(level, np.maximum(k, 1), n - k + 1), 0.0)
+    up = np.where(k < n, beta_dist.ppf(1 - level, k + 1, np.maximum(n - k, 1)), 1.0)
+    return low, up
+
+
+def beta_mixture_bounds(successes: int, trials: int, alpha: float) -> tuple[float, float]:
+    """Robbins' beta-mixture confidence sequence for a Bernoulli mean: ``(low, up)`` at time t.
+
+    For i.i.d. Bernoulli(p) draws with ``S`` successes in ``t`` trials, the mixture of the
+    likelihood ratios ``(q/p)^S ((1-q)/(1-p))^(t-S)`` over a uniform prior on q,
+    ``M_t(p) = B(S + 1, t - S + 1) / (p^S (1 - p)^(t - S))``, is a nonnegative martingale
+    with mean 1 under p, so by Ville's inequality ``P(exists t: M_t(p) >= 1/alpha) <= alpha``.
+    The set ``{p: M_t(p) < 1/alpha}`` is therefore a confidence sequence: with probability at
+    least ``1 - alpha`` it holds the true p at EVERY t at once, so a decision taken at any
+    data-dependent stopping time (after any batch, for any reason) keeps level alpha. That is
+    what a fixed-n bound re-checked after every batch does not do. ``log M_t`` is convex in p
+    with its minimum at ``S/t``, so the set is the interval ``[low, up]`` returned here
+    (``low = 0`` when S = 0, ``up = 1`` when S = t). Both ends hold jointly at level alpha.
+    """
+    check_count(trials, "trials")
+    check_alpha(alpha)
+    if isinstance(successes, bool) or not 0 <= successes <= trials:
+        raise CertificationError(f"successes = {successes!r} must be in 0..{trials}")
+    return (_mixture_lower(int(successes), int(trials), alpha),
+            1.0 - _mixture_lower(int(trials - successes), int(trials), alpha))
+
+
+def _mixture_lower(s: int, t: int, alpha: float) -> float:
+    """Lower end of the beta-mixture confidence interval (see :func:`beta_mixture_bounds`)."""
+    if s == 0:
+        return 0.0
+    f = t - s
+    log_b = betaln(s + 1, f + 1)
+    log_level = math.log(1.0 / alpha)
+
+    def excess(p: float) -> float:  # log M_t(p) - log(1/alpha): > 0 outside the set
+        return log_b - s * math.log(p) - (f * math.log1p(-p) if f else 0.0) - log_level
+
+    # excess falls monotonically on (0, S/t] from +inf to at most -log(1/alpha) (the mixture
+    # never exceeds the maximum likelihood); bisect, then step down by the tolerance (sound).
+    root = brentq(excess, 1e-300, s / t, xtol=1e-13, rtol=1e-12)
+    return max(0.0, root - 2e-12)
+
+
+SEQUENTIAL_BOUNDS = ("looks", "mixture")
+"""Bounds of a sequential decision: Clopper-Pearson at fixed geometric looks (default), or
+Robbins' beta-mixture confidence sequence (any look)."""
+
+
+@dataclasses.dataclass(frozen=True)
+class LookPlan:
+    """When a sequential decision looks at its samples and which bounds it then uses.
+
+    ``looks`` are the cumulative sample counts at which bounds are computed, fixed before any
+    sample is drawn; ``level`` is the level of each one-sided bound at each look. With
+    ``tests`` bounded quantities: "looks" takes Clopper-Pearson bounds at
+    ``alpha / (tests * len(looks))`` (a union bound over quantities and looks: they all hold
+    at every look at once with probability >= 1 - alpha, so stopping at any look is sound);
+    "mixture" takes :func:`beta_mixture_bounds` at ``alpha / tests`` (valid at every sample
+    count, so the looks may be as many as wanted).
+    """
+
+    looks: tuple[int, ...]
+    level: float
+    bound: str
+
+    def bounds(self, successes: int, trials: int) -> tuple[float, float]:
+        """``(low, up)`` on a Bernoulli mean after ``trials`` draws, ``trials`` a look."""
+        if self.bound == "mixture":
+            return beta_mixture_bounds(successes, trials, self.level)
+        low, up = clopper_pearson_one_sided(successes, trials, self.level)
+        return float(low), float(up)
+
+    @property
+    def name(self) -> str:
+        if self.bound == "mixture":
+            return f"beta-mixture confidence sequence (Robbins) at {self.level:.3g} per bound"
+        return (f"Clopper-Pearson at {len(self.looks)} fixed looks {list(self.looks)}, "
+                f"{self.level:.3g} per bound and look")
+
+
+def look_plan(n_max: int, alpha: float, tests: int, *, bound: str = "looks",
+              first_look: int = 32, batch_size: int = 500) -> LookPlan:
+    """The looks of a sequential decision with at most ``n_max`` samples (see
+    :class:`LookPlan`). "looks": geometric, doubling up to ``n_max`` from the first look at
+    or above ``first_look`` (``n_max = 300``: 38, 75, 150, 300). "mixture": after batches of
+    ``first_look``, doubling up to ``batch_size``."""
+    check_count(n_max, "n_max")
+    check_count(tests, "tests")
+    check_count(first_look, "first_look")
+    check_count(batch_size, "batch_size")
+    check_alpha(alpha)
+    if bound not in SEQUENTIAL_BOUNDS:
+        raise CertificationError(f"bound {bound!r} is not one of {', '.join(SEQUENTIAL_BOUNDS)}")
+    if bound == "looks":
+        count = math.floor(math.log2(max(n_max / first_look, 1))) + 1
+        looks = sorted({max(1, round(n_max / 2 ** (count - 1 - j))) for j in range(count)})
+        return LookPlan(tuple(looks), alpha / (tests * len(looks)), bound)
+    looks, drawn, step = [], 0, min(first_look, batch_size)
+    while drawn < n_max:
+        drawn = min(n_max, drawn + step)
+        looks.append(drawn)
+        step = min(2 * step, batch_size)
+    return LookPlan(tuple(looks), alpha / tests, bound)
 
 
 def safe_set_radius(p_low: np.ndarray, p_up: np.ndarray, members: Iterable[int],

@@ -74,9 +74,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="certify these class-per-folder frames (DIR/<label>/*.png, labels "
                              "of --preset; resized to the model's size) instead of the "
                              "synthetic test split (default: the test split)")
-    parser.add_argument("--precision", choices=("fp32", "bf16"), default="fp32",
-                        help="evaluate the model in float32 or bfloat16 (faster on CPUs with "
-                             "AVX512-BF16/AMX; certificates are then those of the bf16 model)")
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="model arithmetic (auto: bf16 where the CPU has it natively, else "
+                             "fp32; DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means); "
+                             "certificates are those of the model as evaluated")
     parser.add_argument("--conformal", action="store_true",
                         help="classify: also the robust conformal interval (holds the true "
                              "stiffness w.p. >= 1 - alpha_total = 0.99 under any L2 "
@@ -98,7 +99,7 @@ def settings_from_args(args: argparse.Namespace):
         calibration_per_class=args.calibration_per_class, calibration_n=args.calibration_n,
         conformal=getattr(args, "conformal", False),
         conformal_per_class=getattr(args, "conformal_per_class", 200),
-        precision=getattr(args, "precision", "fp32"))
+        precision=getattr(args, "precision", "auto"))
     settings.validate()
     return settings
 

@@ -31,8 +31,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="attack on each frame (default: the scenario's)")
     parser.add_argument("--eps", type=float, default=None, metavar="E",
                         help="L2 budget of the attack, [0, 1] pixel units (default: scenario's)")
-    parser.add_argument("--seed", type=int, default=None,
-                        help="seed of every random stream (default: the scenario's)")
+    parser.add_argument("--seed", type=_seed, default=None,
+                        help="seed of every random stream, or 'none' for fresh noise from the "
+                             "OS (deployment; the drawn seed is printed and stored so the drive "
+                             "can be replayed) (default: the scenario's)")
     parser.add_argument("--n", type=int, default=None,
                         help="estimation samples per certificate (default: the scenario's)")
     parser.add_argument("--interval", choices=("safe_set", "conformal"), default=None,
@@ -71,8 +73,20 @@ def _check_outputs(args) -> None:
         raise ConfigError(f"--duration {args.duration!r} must be a positive number of seconds")
     if args.n is not None and args.n <= 0:
         raise ConfigError(f"--n {args.n} must be a positive integer")
-    if args.seed is not None and args.seed < 0:
+    if isinstance(args.seed, int) and args.seed < 0:
         raise ConfigError(f"--seed {args.seed} must be >= 0")
+
+
+def _seed(text: str) -> int | str:
+    """An integer seed, or "none" (fresh noise from the operating system)."""
+    import argparse
+
+    if text.strip().lower() in ("none", "null"):
+        return "none"
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer or 'none'") from None
 
 
 def _designs(args, vehicle, conditions, settings):
@@ -94,9 +108,15 @@ def run(args) -> int:
     # Scenarios are rebuilt from these choices in each worker (Drake's SimulatorConfig inside a
     # scenario does not pickle); loading one here first reports a bad scenario in one line.
     choices = [dict(scenario=args.scenario, n=args.n, pipeline=p, attack=args.attack,
-                    eps=args.eps, seed=args.seed, duration=args.duration,
-                    interval=args.interval) for p in pipelines]
-    _scenario_for(**choices[0])
+                    eps=args.eps, seed=None if args.seed == "none" else args.seed,
+                    duration=args.duration, interval=args.interval) for p in pipelines]
+    first = _scenario_for(**choices[0])
+    seed_source = "scenario"
+    if args.seed == "none" or first.seed is None:  # one draw, shared by every pipeline
+        from systems.driving import entropy_seed
+
+        seed, seed_source = entropy_seed(), "os-entropy"
+        choices = [dict(c, seed=seed) for c in choices]
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = _designs(args, vehicle, conditions, settings)
     common = dict(vehicle=vehicle, settings=settings, conditions=conditions, designs=designs)
@@ -111,6 +131,8 @@ def run(args) -> int:
             futures = [pool.submit(_drive_with_bar, c, common, i)
                        for i, c in enumerate(choices)]
             results = [f.result() for f in futures]
+    for r in results:
+        r.summary["seed_source"] = seed_source
     _write_outputs(args, results)
     if args.json:
         out = [r.summary for r in results]
@@ -160,8 +182,12 @@ def format_summaries(summaries: list[dict]) -> str:
             ("mean_speed_mps", "{:.2f}"), ("min_speed_mps", "{:.2f}"),
             ("distance_m", "{:.1f}"), ("interval_covers_true_fraction", "{:.3f}"),
             ("envelope_fraction", "{:.3f}"), ("design_switches", "{}"),
-            ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"))
-    lines = [f"scenario {summaries[0]['scenario']} (seed {summaries[0]['seed']})"]
+            ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
+            ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
+            ("backend", "{}"))
+    s0 = summaries[0]
+    source = " from OS entropy" if s0.get("seed_source") == "os-entropy" else ""
+    lines = [f"scenario {s0['scenario']} (seed {s0['seed']}{source})"]
     for key, fmt in keys:
         cells = []
         for s in summaries:

@@ -50,9 +50,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--workers", type=int, default=2, help="Ray workers")
     parser.add_argument("--address", default=None,
                         help="existing Ray cluster address (e.g. auto or ray://host:10001)")
-    parser.add_argument("--precision", choices=("fp32", "bf16"), default="bf16",
-                        help="model arithmetic of attacks, certificates and calibration "
-                             "(default bf16: ~4x faster on CPUs with AVX512-BF16/AMX)")
+    parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
+                        help="model arithmetic of attacks, certificates and calibration (auto: "
+                             "bf16 where the CPU has it natively, else fp32; the environment "
+                             "variable DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means)")
     parser.add_argument("--budget-min", type=float, default=None,
                         help="start no new frame after this many minutes; write the tables of "
                              "the frames finished so far (rerun to resume)")

@@ -26,7 +26,11 @@ from drake_cert.certification.conformal import (
 )
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
-from drake_cert.certification.sampler import PRECISIONS, with_precision
+from drake_cert.certification.sampler import (
+    PRECISION_SETTINGS,
+    resolve_precision,
+    with_precision,
+)
 from drake_cert.certification.seeds import stream_seed, streams
 from drake_cert.certification.statistics import min_calibration_frames, percentile_bound_indices
 from drake_cert.config import ConditionsTable
@@ -62,7 +66,14 @@ class CertifySettings:
     conformal_alpha_c: float = ALPHA_C  # its conformal miscoverage (alpha_total adds 2 betas)
     conformal_beta: float = BETA_CAL  # its Monte-Carlo levels (calibration and test each)
     conformal_per_class: int = 200  # its calibration frames per label (>= 1/alpha_c - 1)
-    precision: str = "fp32"  # "fp32" or "bf16": the model as evaluated everywhere (attack too)
+    precision: str = "auto"  # the model as evaluated everywhere (attack too): fp32 or bf16;
+    # "auto" is resolved on construction (sampler.resolve_precision)
+
+    def __post_init__(self):
+        if self.precision not in PRECISION_SETTINGS:
+            raise CertificationError(f"precision {self.precision!r} is not one of "
+                                     f"{', '.join(PRECISION_SETTINGS)}")
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
 
     def validate(self) -> None:
         if self.task not in ("classify", "regress"):
@@ -81,9 +92,6 @@ class CertifySettings:
         for key in ("alpha", "alpha_c", "alpha_m", "conformal_alpha_c", "conformal_beta"):
             if not 0 < getattr(self, key) < 1:
                 raise CertificationError(f"{key} = {getattr(self, key)!r} must be in (0, 1)")
-        if self.precision not in PRECISIONS:
-            raise CertificationError(f"precision {self.precision!r} is not one of "
-                                     f"{', '.join(PRECISIONS)}")
         if self.compile not in ("auto", "on", "off"):
             raise CertificationError(f"compile = {self.compile!r} is not auto, on or off")
         if self.seed < 0:
@@ -298,6 +306,7 @@ def summarize_classification(records: list[dict], settings: CertifySettings) -> 
     out = {"frames": len(records), "preset": settings.preset, "task": settings.task,
            "sigma": settings.sigma, "attack": settings.attack, "eps": settings.eps,
            "n0": settings.n0, "n": settings.n, "alpha": settings.alpha,
+           "precision": settings.precision,
            "accuracy": float(np.mean(pred == y)), "clean_accuracy": float(np.mean(clean == y))}
     if settings.sigma == 0:
         return out
@@ -424,7 +433,8 @@ def summarize_regression(records: list[dict], settings: CertifySettings,
     pred = np.array([r["prediction_n_per_rad"] for r in records])
     out = {"frames": len(records), "preset": settings.preset, "task": settings.task,
            "sigma": settings.sigma, "attack": settings.attack, "eps": settings.eps,
-           "n": settings.n, "alpha": settings.alpha, "mae_n_per_rad": float(np.mean(abs(pred - y)))}
+           "n": settings.n, "alpha": settings.alpha, "precision": settings.precision,
+           "mae_n_per_rad": float(np.mean(abs(pred - y)))}
     if settings.sigma == 0:
         clean = np.array([r["clean_prediction_n_per_rad"] for r in records])
         out["clean_mae_n_per_rad"] = float(np.mean(abs(clean - y)))

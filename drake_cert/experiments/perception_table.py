@@ -70,11 +70,16 @@ class TableSettings:
     conformal_per_class: int = 150  # classification calibration frames per label
     regression_per_class: int = 100  # regression calibration frames per label
     attack_steps: int = 10
-    precision: str = "bf16"
+    precision: str = "auto"  # fp32 or bf16; "auto" is resolved on construction
     compile: str = "on"
     batch_size: int = 1000
     seed: int = 0
     tasks: tuple[str, ...] = ("classify", "regress")
+
+    def __post_init__(self):
+        from drake_cert.certification.sampler import resolve_precision
+
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
 
     def validate(self) -> None:
         if not self.budgets or any(not (math.isfinite(e) and e > 0) for e in self.budgets):

@@ -54,8 +54,18 @@ class ReproduceConfig:
     interval: str = "safe_set"  # g's interval: "safe_set" (paper) or "conformal" (DESIGN 3)
     conformal_per_class: int = 150  # robust conformal calibration frames per label (>= 124)
     conformal_n: int = 500  # samples per conformal calibration frame
-    precision: str = "bf16"  # model arithmetic for attacks, certificates and calibration alike
+    precision: str = "auto"  # model arithmetic of attacks, certificates and calibration alike;
+    # "auto" is resolved on construction (sampler.resolve_precision), so results and the run
+    # identity always name the arithmetic that ran
     seed: int = 0
+
+    def __post_init__(self):
+        from drake_cert.certification.sampler import PRECISION_SETTINGS, resolve_precision
+
+        if self.precision not in PRECISION_SETTINGS:
+            raise ConfigError(f"precision {self.precision!r} is not one of "
+                              f"{', '.join(PRECISION_SETTINGS)}")
+        object.__setattr__(self, "precision", resolve_precision(self.precision))
 
     @staticmethod
     def quick(seed: int = 0) -> ReproduceConfig:
@@ -88,10 +98,6 @@ class ReproduceConfig:
         for name in ("conformal_per_class", "conformal_n"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
-        from drake_cert.certification.sampler import PRECISIONS
-
-        if self.precision not in PRECISIONS:
-            raise ConfigError(f"precision {self.precision!r} is not one of {', '.join(PRECISIONS)}")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
 
