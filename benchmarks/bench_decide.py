@@ -7,9 +7,10 @@ driving Diagram asks)? Side by side, alternating per frame so that load hits bot
 
 - fixed: Cohen's CERTIFY with n0 = 100 selection and n = --n estimation samples, joint
   Clopper-Pearson bounds, then the narrowest range with R_T > eps;
-- sequential (looks): SmoothedClassifier.decide with at most --n samples, the top label from
-  the base model on the frame, Clopper-Pearson at geometric looks;
-- sequential (mixture): the same with Robbins' beta-mixture confidence sequence.
+- sequential (looks): SmoothedClassifier.decide with at most --n samples, every candidate
+  range tested at once (no selection), Clopper-Pearson at geometric looks;
+- sequential (mixture): the same with Robbins' beta-mixture confidence sequence;
+- sequential (select 30): the ranges holding the top label of 30 selection samples.
 
 Prints samples per decision, decisions per second, the share certified and the share where
 the sequential range equals the fixed one; then one JSON line.
@@ -58,7 +59,7 @@ def main() -> None:
     per_class = max(1, args.frames // len(labels))
     test = load_split(args.preset, "test", conditions=conditions, frames_per_class=per_class)
     ranges = candidate_ranges(conditions, args.preset, labels)
-    methods = ("fixed", "sequential (looks)", "sequential (mixture)")
+    methods = ("fixed", "sequential (looks)", "sequential (mixture)", "sequential (select 30)")
     out = {m: {"samples": [], "seconds": 0.0, "certified": [], "range": []} for m in methods}
     for i, x in enumerate(test.images):
         for m in methods:
@@ -69,8 +70,11 @@ def main() -> None:
                                                      labels)
                 samples, certified, rng = 100 + args.n, rt.certified, rt.labels
             else:
-                d = g.decide(x, args.eps, args.alpha, args.n, args.batch_size, ranges, seed=i,
-                             bound="mixture" if "mixture" in m else "looks")
+                select = "select" in m
+                d = g.decide(x, args.eps, args.alpha, args.n, args.batch_size,
+                             (lambda a: [c for c in ranges if a in c]) if select else ranges,
+                             seed=i, bound="mixture" if "mixture" in m else "looks",
+                             selection_n=30 if select else 0, selection_seed=10**6 + i)
                 samples, certified = d.samples, d.certified
                 rng = tuple(labels[k] for k in d.labels) if certified else tuple(labels)
             out[m]["seconds"] += time.perf_counter() - start
@@ -81,7 +85,7 @@ def main() -> None:
     print(f"{args.preset}, sigma {args.sigma:g}, eps {args.eps:g}, alpha {args.alpha:g}, "
           f"{frames} test frames, n = {args.n}, {precision} via {backend}, "
           f"{args.threads} thread(s)")
-    print(f"{'method':<22}{'samples/decision':>18}{'decisions/s':>13}{'certified':>11}"
+    print(f"{'method':<24}{'samples/decision':>18}{'decisions/s':>13}{'certified':>11}"
           f"{'same range as fixed':>21}")
     summary = {"preset": args.preset, "sigma": args.sigma, "eps": args.eps, "frames": frames,
                "n": args.n, "precision": precision, "backend": backend,
@@ -93,7 +97,7 @@ def main() -> None:
                "decisions_per_s": frames / r["seconds"],
                "certified_share": float(np.mean(r["certified"])), "same_range_share": same}
         summary[m] = row
-        print(f"{m:<22}{row['samples_per_decision']:>18.0f}{row['decisions_per_s']:>13.1f}"
+        print(f"{m:<24}{row['samples_per_decision']:>18.0f}{row['decisions_per_s']:>13.1f}"
               f"{row['certified_share']:>11.1%}{same:>21.1%}")
     print(json.dumps(summary))
 

@@ -1,21 +1,32 @@
-"""Simulated seconds per wall second of the certified driving Diagram (issue 7, item 13).
+"""Simulated seconds per wall second of the certified driving Diagram at camera 10 Hz.
 
 Drives the shipped dry_to_snow route for ``--seconds`` of simulated time with the camera at
-10 Hz: (a) certified pipeline, n = 1000 estimation samples per frame (n0 = 100), no attack;
-(b) the same Diagram with perception off in effect (the base pipeline: one forward pass of f
-per frame). Prints both rates side by side, and where the time of (a) goes (certificates vs
-the rest), measured with perf_counter around the drive and inside the perception block.
+10 Hz and no attack, side by side in one run (same machine, same load):
+
+- certified, sequential decisions (the shipped default): at most n samples per frame, the
+  range decided as soon as it is known (the top label from the base model on the frame);
+- certified, sequential, torch backend (the model in torch instead of ONNX Runtime);
+- certified, fixed-n certificates: n0 = 100 selection and n estimation samples per frame;
+- perception off in effect (the base pipeline: one forward pass of f per frame).
+
+Precision and backend are what ``auto`` picks here unless ``DRAKE_CERT_PRECISION`` says
+otherwise (both printed). For each: the real-time factor, the wall time, the time inside
+perception (perf_counter around the perception block's work) and samples per frame.
 
 Usage: python benchmarks/bench_driving.py [--seconds 10] [--n 1000] [--threads 1]
 """
 
 import argparse
 import dataclasses
+import json
 import time
 
-import torch
+import numpy as np
 
+from drake_cert.certification.backends import resolve_backend
+from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.threads import torch_threads
 from synthesis.table import synthesize_table
 from systems.driving import build_certified_driving_diagram, drive, with_overrides
 from systems.scenario import load_scenario
@@ -37,6 +48,7 @@ def timed_drive(scenario, setup, seconds):
 
     perception.perceive = perceive  # measurement only: same computation
     result = drive(built, t_final_s=seconds)
+    spent["samples_per_frame"] = float(np.mean(result.ticks.samples))
     return result.summary, spent
 
 
@@ -46,32 +58,48 @@ def main() -> None:
     parser.add_argument("--n", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
     args = parser.parse_args()
-    torch.set_num_threads(args.threads)
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     setup = dict(vehicle=vehicle, conditions=conditions, settings=settings,
                  designs=synthesize_table(vehicle, conditions, settings))
-    base = load_scenario("dry_to_snow")
-    base = dataclasses.replace(base, perception=dataclasses.replace(
-        base.perception, n=args.n, n0=100), camera=dataclasses.replace(base.camera, rate_hz=10.0))
+    shipped = load_scenario("dry_to_snow")
+    precision = resolve_precision(shipped.perception.precision)
+    backend = resolve_backend(shipped.perception.backend, precision)
+
+    def variant(pipeline, **perception):
+        p = dataclasses.replace(shipped.perception, n=args.n, **perception)
+        sc = dataclasses.replace(shipped, perception=p,
+                                 camera=dataclasses.replace(shipped.camera, rate_hz=10.0))
+        return with_overrides(sc, pipeline=pipeline, attack="none")
+
+    configs = [
+        (f"sequential, n <= {args.n}, {backend}", variant("certified", decision="sequential")),
+        (f"sequential, n <= {args.n}, torch", variant("certified", decision="sequential",
+                                                      backend="torch")),
+        (f"fixed, n0 100 + n {args.n}, {backend}", variant("certified", decision="fixed",
+                                                           n0=100)),
+        ("perception off (base f)", variant("base")),
+    ]
     rows = []
-    for name, pipeline in ((f"certified, n = {args.n}", "certified"),
-                           ("perception off (base f)", "base")):
-        scenario = with_overrides(base, pipeline=pipeline, attack="none")
-        summary, spent = timed_drive(scenario, setup, args.seconds)
-        rows.append((name, summary, spent))
-    print(f"dry_to_snow, camera 10 Hz, {args.seconds:g} s simulated, torch threads "
-          f"{args.threads}, resolution: time.perf_counter")
-    print(f"{'configuration':<28}{'sim s / wall s':>16}{'wall s':>9}{'perception s':>14}"
-          f"{'per frame ms':>14}")
+    with torch_threads(args.threads):
+        for name, scenario in configs:
+            summary, spent = timed_drive(scenario, setup, args.seconds)
+            rows.append((name, summary, spent))
+    print(f"dry_to_snow, camera 10 Hz, no attack, {args.seconds:g} s simulated, {precision} "
+          f"(backend auto: {backend}), {args.threads} thread(s), time.perf_counter")
+    print(f"{'configuration':<36}{'sim s / wall s':>15}{'wall s':>8}{'perception s':>14}"
+          f"{'ms / frame':>11}{'samples / frame':>17}{'envelope':>10}")
+    out = {"precision": precision, "backend_auto": backend, "seconds": args.seconds,
+           "n": args.n, "threads": args.threads}
     for name, s, spent in rows:
         per_frame = 1e3 * spent["perceive_s"] / max(spent["frames"], 1)
-        print(f"{name:<28}{s['real_time_factor']:>16.3f}{s['wall_s']:>9.1f}"
-              f"{spent['perceive_s']:>14.1f}{per_frame:>14.1f}")
-    (_, cert, spent), (_, off, _) = rows
-    rest = cert["wall_s"] - spent["perceive_s"]
-    print(f"certified: {100 * spent['perceive_s'] / cert['wall_s']:.0f}% of the wall time in "
-          f"certificates ({spent['frames']} frames), {rest:.1f} s in the rest of the Diagram "
-          f"(perception off: {off['wall_s']:.1f} s)")
+        print(f"{name:<36}{s['real_time_factor']:>15.3f}{s['wall_s']:>8.1f}"
+              f"{spent['perceive_s']:>14.1f}{per_frame:>11.1f}{spent['samples_per_frame']:>17.0f}"
+              f"{s['envelope_fraction']:>10.1%}")
+        out[name] = {"real_time_factor": s["real_time_factor"], "wall_s": s["wall_s"],
+                     "perception_s": spent["perceive_s"], "ms_per_frame": per_frame,
+                     "samples_per_frame": spent["samples_per_frame"],
+                     "envelope_fraction": s["envelope_fraction"]}
+    print(json.dumps(out))
 
 
 if __name__ == "__main__":

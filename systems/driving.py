@@ -90,6 +90,7 @@ class TickLog:
     seen_stiffness_n_per_rad: np.ndarray  # (K,)
     status: np.ndarray  # (K,)
     design_index: np.ndarray  # (K,) design the block chose for the look-ahead point
+    samples: np.ndarray  # (K,) noisy samples perception drew for the frame (selection incl.)
 
 
 @dataclasses.dataclass
@@ -304,6 +305,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         "seen_stiffness": log(camera.GetOutputPort("seen_stiffness_n_per_rad"), period),
         "status": log(interval.GetOutputPort("status"), period),
         "design": log(interval.GetOutputPort("design_index"), period),
+        "samples": log(perception.GetOutputPort("samples"), period),
     }
     diagram = b.Build()
     diagram.set_name(f"certified_driving_{p.pipeline}")
@@ -425,7 +427,8 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
                     interval_n_per_rad=ticks_raw["interval"][1][:m][keep],
                     seen_stiffness_n_per_rad=seen[keep],
                     status=ticks_raw["status"][1][:m, 0][keep].astype(int),
-                    design_index=ticks_raw["design"][1][:m, 0][keep].astype(int))
+                    design_index=ticks_raw["design"][1][:m, 0][keep].astype(int),
+                    samples=ticks_raw["samples"][1][:m, 0][keep].astype(int))
     return tape, ticks
 
 
@@ -468,10 +471,12 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "interval_covers_true_fraction": float(np.mean(covers)) if len(covers) else None,
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
         "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
+        "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,
         "seed": scenario.seed,
         "seed_source": seed_source,
         "precision": resolve_precision(scenario.perception.precision),
-        "decision": scenario.perception.resolved_decision,
+        "decision": scenario.perception.resolved_decision
+        if scenario.perception.pipeline == "certified" else "none (base f)",
         "backend": resolve_backend(scenario.perception.backend,
                                    resolve_precision(scenario.perception.precision)),
         "quantization": scenario.perception.quantization,

@@ -4,9 +4,9 @@ A periodic unrestricted update at the camera rate (default offset T/4, after the
 tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult`:
 
 - ``mode="certified"``, ``task="classify"``, ``decision="sequential"``: the sequential
-  decision at budget eps (:meth:`SmoothedClassifier.decide`: the top label from n0 selection
-  samples, or from the base model's prediction on the frame when n0 = 0; up to n estimation
-  samples, stopping as soon as the narrowest certifiable label range is decided), the
+  decision at budget eps (:meth:`SmoothedClassifier.decide`): every candidate label range
+  tested at once when n0 = 0, or those holding the top label of n0 selection samples; up to
+  n estimation samples, stopping as soon as the narrowest certifiable range is decided; the
   run-time interval's range or an abstention.
 - ``decision="fixed"``: the fixed-n certificate at the observed frame
   (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation samples, joint
@@ -78,9 +78,15 @@ class PerceptionResult:
                                 error="no frame yet", mode=mode, task=task)
 
 
+def _holding(ranges):
+    """The ranges that hold a label, as a function of the label."""
+    return lambda label: [c for c in ranges if label in c]
+
+
 class PerceptionSmoothing(LeafSystem):
     """Input ``frame`` (abstract :class:`CameraFrame`); abstract state and output
-    ``perception`` (:class:`PerceptionResult`).
+    ``perception`` (:class:`PerceptionResult`); output ``samples`` (1): noisy samples drawn
+    for the latest frame.
 
     Args:
         model: classifier (logits over ``label_names``) or stiffness regressor, eval mode.
@@ -95,8 +101,9 @@ class PerceptionSmoothing(LeafSystem):
         frame_size: expected frames are [3, frame_size, frame_size].
         compile: compile the model for the smoothing (see :class:`SmoothedClassifier`).
         decision: "sequential" or "fixed" (classification; regression is always fixed-n).
-        ranges: sequential only: the candidate label ranges of a top label, most preferred
-            first (:func:`drake_cert.certification.intervals.candidate_ranges`); default {top}.
+        ranges: sequential only: the candidate label ranges, most preferred first
+            (:func:`drake_cert.certification.intervals.candidate_ranges`); n0 > 0 keeps those
+            holding the selection's top label; None: the top label alone.
     """
 
     def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
@@ -146,9 +153,11 @@ class PerceptionSmoothing(LeafSystem):
             "frame", AbstractValue.Make(CameraFrame.placeholder(int(frame_size))))
         state_index = self.DeclareAbstractState(AbstractValue.Make(initial))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self.period_s, self.offset_s, self._update)
+        state = {self.abstract_state_ticket(state_index)}
         self.DeclareAbstractOutputPort("perception", lambda: AbstractValue.Make(initial),
-                                       self._calc_perception,
-                                       prerequisites_of_calc={self.abstract_state_ticket(state_index)})
+                                       self._calc_perception, prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("samples", 1, self._calc_samples,
+                                     prerequisites_of_calc=state)
 
     def frame_problem(self, image) -> str:
         """Why a frame cannot be perceived ("" when it can)."""
@@ -181,8 +190,11 @@ class PerceptionSmoothing(LeafSystem):
                 if self.mode == "base":
                     return dataclasses.replace(base, base_label=base_label)
                 if self.decision == "sequential":
+                    ranges = self.ranges
+                    if self.n0 and ranges is not None:  # those holding the selected label
+                        ranges = _holding(ranges)
                     d = self._smooth.decide(
-                        x, self.eps, self.alpha, self.n, self.batch_size, self.ranges,
+                        x, self.eps, self.alpha, self.n, self.batch_size, ranges,
                         seed=seed, selection_n=self.n0,
                         selection_seed=streams.stream_seed(self.seed, streams.SELECTION,
                                                            frame.tick))
@@ -211,3 +223,6 @@ class PerceptionSmoothing(LeafSystem):
 
     def _calc_perception(self, context, output: AbstractValue) -> None:
         output.set_value(context.get_abstract_state(0).get_value())
+
+    def _calc_samples(self, context, output) -> None:
+        output.SetAtIndex(0, float(context.get_abstract_state(0).get_value().samples))

@@ -10,7 +10,6 @@ Shipped scenarios live in ``drake_cert/data/scenarios/<name>.yaml``.
 
 
 import dataclasses
-import typing
 import math
 from importlib import resources
 from pathlib import Path
@@ -69,7 +68,7 @@ class PerceptionSettings:
     sigma: float = 0.25  # smoothing noise level (pixel units in [0, 1]) of the certified model
     base_sigma: float = 0.0  # noise level of the model the base pipeline runs (0: plain f)
     eps: float = 0.5  # L2 budget (pixel units) the run-time interval is certified against
-    n0: int = 100  # selection samples per certificate (sequential: 0 = the base model's label)
+    n0: int = 100  # selection samples per certificate (sequential: 0 = test every range at once)
     n: int = 1000  # estimation samples per certificate
     alpha: float = 0.001  # failure probability of each certificate
     batch_size: int = 500  # noisy copies per model evaluation
@@ -113,8 +112,8 @@ class PerceptionSettings:
         _non_negative(self.base_sigma, "perception.base_sigma", where)
         _non_negative(self.eps, "perception.eps", where)
         if self.resolved_decision == "sequential" and self.n0 < 0:
-            raise ConfigError(f"{where}: perception.n0 = {self.n0} must be >= 0 (0: the base "
-                              "model's label on the frame picks the range to test)")
+            raise ConfigError(f"{where}: perception.n0 = {self.n0} must be >= 0 (0: no "
+                              "selection, every label range is tested at once)")
         keys = ("n", "batch_size", "calibration_frames_per_class", "calibration_n",
                 "conformal_frames_per_class")
         for key in keys if self.resolved_decision == "sequential" else ("n0", *keys):
@@ -180,7 +179,7 @@ class Scenario:
     """One drive, reproducible from this file alone."""
 
     name: str = ""  # short name of the scenario
-    seed: typing.Optional[int] = 0  # seed of every random stream; null: OS entropy (deployment)
+    seed: int | None = 0  # seed of every random stream; null: OS entropy (deployment)
     transition_m: float = 10.0  # curvature ramps over this length at segment boundaries (m)
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)

@@ -46,3 +46,19 @@ def test_bad_drive_input_is_one_line_and_exit_2(argv, message, capsys):
     assert main(["drive", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_seed_none_draws_fresh_noise_and_records_the_seed_to_replay_it(designs, capsys):
+    runs = []
+    for _ in range(2):
+        assert main(["drive", "--scenario", "dry_to_snow", "--seed", "none", "--duration",
+                     "0.3", "--designs", designs, "--json"]) == 0
+        runs.append(json.loads(capsys.readouterr().out))
+    assert all(r["seed_source"] == "os-entropy" for r in runs)
+    assert runs[0]["seed"] != runs[1]["seed"]
+    assert main(["drive", "--scenario", "dry_to_snow", "--seed", str(runs[0]["seed"]),
+                 "--duration", "0.3", "--designs", designs, "--json"]) == 0
+    replay = json.loads(capsys.readouterr().out)
+    assert replay["seed_source"] == "scenario"
+    assert replay["mean_samples_per_tick"] == runs[0]["mean_samples_per_tick"]
+    assert replay["peak_abs_e1_m"] == runs[0]["peak_abs_e1_m"]

@@ -43,3 +43,46 @@ def test_bf16_model_agrees_with_float32_on_most_noisy_frames(model):
 def test_unknown_precision_is_rejected(model):
     with pytest.raises(CertificationError, match="precision"):
         SmoothedClassifier(model, 3, 0.25, precision="fp8")
+
+
+def test_auto_is_fp32_where_the_probe_finds_no_native_bf16(monkeypatch):
+    from drake_cert.certification import sampler
+
+    monkeypatch.delenv(sampler.PRECISION_ENV, raising=False)
+    monkeypatch.setattr(sampler, "bf16_supported", lambda: False)
+    assert sampler.resolve_precision("auto") == "fp32"
+    monkeypatch.setattr(sampler, "bf16_supported", lambda: True)
+    assert sampler.resolve_precision("auto") == "bf16"
+    assert sampler.resolve_precision("fp32") == "fp32"  # explicit choices mean themselves
+
+
+def test_the_environment_fixes_what_auto_means_for_the_process(monkeypatch):
+    from drake_cert.certification import sampler
+
+    monkeypatch.setattr(sampler, "bf16_supported", lambda: True)
+    monkeypatch.setenv(sampler.PRECISION_ENV, "fp32")
+    assert sampler.resolve_precision("auto") == "fp32"
+    monkeypatch.setenv(sampler.PRECISION_ENV, "fp16")
+    with pytest.raises(CertificationError, match="DRAKE_CERT_PRECISION"):
+        sampler.resolve_precision("auto")
+
+
+def test_a_drive_and_a_certify_run_report_the_precision_they_used(monkeypatch, tmp_path,
+                                                                  capsys):
+    import json
+
+    from drake_cert.certification import sampler
+    from drake_cert.cli import main
+
+    monkeypatch.delenv(sampler.PRECISION_ENV, raising=False)
+    monkeypatch.setattr(sampler, "bf16_supported", lambda: False)  # only the probe is mocked
+    assert main(["drive", "--scenario", "dry_to_snow", "--duration", "0.4", "--json",
+                 "--out", str(tmp_path / "tape.csv")]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["precision"] == "fp32" and summary["decision"] == "sequential"
+    stored = [line for line in (tmp_path / "tape.csv").read_text().splitlines()
+              if line.startswith("# summary ")]
+    assert json.loads(stored[0][len("# summary "):])["precision"] == "fp32"
+    assert main(["certify", "--preset", "carla-like", "--sigma", "0.25", "--frames", "3",
+                 "--n", "100", "--n0", "10", "--attack-steps", "2", "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["summary"]["precision"] == "fp32"

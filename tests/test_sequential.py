@@ -102,6 +102,24 @@ def test_a_label_range_is_certified_where_its_top_label_alone_is_not():
     assert all(r.radius <= exact for r in runs)  # never more than the exact bound allows
 
 
+def test_fixed_ranges_need_no_top_label_and_certify_through_their_best_label():
+    # The base model's noise-free label is 0, but label 0 is a narrow band |u| < 0.05, so
+    # under noise label 1 dominates (P = 0.84): testing every range at once certifies {1}
+    # without choosing a label; choosing the noise-free label would have tested {0} alone.
+    class Band(torch.nn.Module):
+        def forward(self, z):
+            u = z[:, 0, 0, 0] - 0.5
+            label = torch.where(u.abs() < 0.05, 0, torch.where(u > -0.9, 1, 2))
+            return torch.nn.functional.one_hot(label, 3).float()
+
+    g, eps = SmoothedClassifier(Band(), 3, SIGMA), 0.1
+    assert g.base_label(FRAME) == 0
+    d = g.decide(FRAME, eps, 0.001, 2000, 1000, [(0,), (1,), (2,), (0, 1), (1, 2)], seed=1)
+    assert d.certified and d.labels == (1,) and d.top_label == 1
+    by_base = g.decide(FRAME, eps, 0.001, 2000, 1000, None, seed=1)  # {0} alone: hopeless
+    assert not by_base.certified and by_base.reason == "futile"
+
+
 def test_selection_samples_are_counted_and_come_from_their_own_stream():
     g = two_class(2 * EPS)
     a = g.decide(FRAME, EPS, 0.001, 1000, 1000, seed=1, selection_n=16, selection_seed=9)
@@ -146,20 +164,31 @@ def test_sequential_radius_is_cohens_for_a_single_label():
     assert sequential_radius(0.4, 0.4, 0.5) == 0.0
 
 
-def test_looks_are_fixed_in_advance_and_split_alpha():
-    plan = look_plan(300, 0.001, 2)
-    assert plan.looks == (38, 75, 150, 300) and plan.level == pytest.approx(0.001 / 8)
-    assert look_plan(7, 0.01, 1).looks == (7,)
+def test_looks_are_fixed_in_advance_and_split_alpha_over_the_certifying_ones():
+    p0 = norm.cdf(1.0)  # eps = sigma
+    plan = look_plan(300, 0.001, 2, threshold=p0)
+    assert plan.looks == (53, 106, 212, 300) and plan.certify_from == 53
+    assert plan.level == pytest.approx(0.001 / (2 * 4))
+    # The first certifying look is the fewest unanimous votes that can certify at that level.
+    assert plan.level ** (1 / 53) > p0 >= plan.level ** (1 / 52)
+    # A large n_min leaves room for futility-only looks, which spend no alpha.
+    far = look_plan(20_000, 0.001, 1, threshold=norm.cdf(2.5), first_look=32)
+    early = [n for n in far.looks if n < far.certify_from]
+    assert early and far.bounds(early[0], early[0])[0] == 0.0  # cannot certify there
+    assert far.level == pytest.approx(0.001 / (len(far.looks) - len(early)))
     mixture = look_plan(1000, 0.001, 2, bound="mixture", first_look=32, batch_size=256)
     assert mixture.looks == (32, 96, 224, 480, 736, 992, 1000)
     assert mixture.level == pytest.approx(0.0005)
     with pytest.raises(CertificationError, match="bound"):
-        look_plan(100, 0.01, 1, bound="peek")
+        look_plan(100, 0.001, 1, bound="peek")
+    with pytest.raises(CertificationError, match="never certify"):
+        look_plan(300, 0.001, 1, threshold=norm.cdf(3.0))
 
 
 @pytest.mark.parametrize("kwargs, match", [
     (dict(eps=-1.0), "eps"), (dict(n_max=0), "n_max"), (dict(alpha=1.5), "alpha"),
-    (dict(ranges=lambda a: [(1,)]), "contain"), (dict(ranges=lambda a: []), "no candidate"),
+    (dict(ranges=lambda a: [(1,)]), "containing"), (dict(ranges=lambda a: []), "no candidate"),
+    (dict(ranges=[(0, 5)]), "within"),
     (dict(selection_n=-3), "selection_n"), (dict(bound="fixed"), "bound"),
 ])
 def test_bad_arguments_raise_certification_error(kwargs, match):

@@ -10,6 +10,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import torch
+from scipy.special import ndtri
 from scipy.stats import binomtest, norm
 
 from drake_cert.certification.sampler import (
@@ -61,7 +62,7 @@ class ClassCertificate:
 
 
 SafeSet = Callable[[int], Iterable[int]] | Mapping[int, Iterable[int]] | Sequence[Iterable[int]]
-CandidateRanges = Callable[[int], Sequence[Iterable[int]]]
+Ranges = Sequence[Iterable[int]] | Callable[[int], Sequence[Iterable[int]]]
 
 @dataclasses.dataclass(frozen=True)
 class SequentialDecision:
@@ -102,7 +103,7 @@ def sequential_radius(p_low_top: float, p_low_range: float, sigma: float) -> flo
     This is :func:`safe_set_radius` with the outside term bounded by ``1 - P(T)``:
     ``PhiInv(1 - P(T)) = -PhiInv(P(T))``; for T = {a} it is Cohen's ``sigma PhiInv(p_low)``.
     """
-    r = 0.5 * sigma * (float(norm.ppf(p_low_top)) + float(norm.ppf(p_low_range)))
+    r = 0.5 * sigma * (float(ndtri(p_low_top)) + float(ndtri(p_low_range)))  # ndtri: PhiInv
     return r if r > 0 else 0.0
 
 
@@ -207,32 +208,39 @@ class SmoothedClassifier(SmoothedModel):
                                 p_up=p_up, sigma=self.sigma, alpha=float(alpha))
 
     def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
-               ranges: CandidateRanges | None = None, *, seed: int | None = None,
+               ranges: Ranges | None = None, *, seed: int | None = None,
                selection_n: int = 0, selection_seed: int | None = None,
-               bound: str = "looks", first_look: int = 32) -> SequentialDecision:
+               bound: str = "looks", first_look: int = 32,
+               futility_level: float = 0.01) -> SequentialDecision:
         """Is a label range certified at radius ``eps`` around the observed frame ``x``?
         Decided sequentially: it stops as soon as the answer is known either way.
 
-        The top label a is the base model's prediction on ``x`` (``selection_n = 0``, one
-        noise-free forward pass) or the most frequent label among ``selection_n`` noisy
-        samples drawn from ``selection_seed`` (an independent stream; ties go to the
-        least-friction label). Either way a is fixed before any estimation sample is drawn,
-        so the bounds below hold for it as for any fixed label. ``ranges(a)`` lists the
-        candidate label ranges, each containing a, most preferred first (default: only {a}).
+        ``ranges`` are the candidate label ranges, most preferred first, fixed before any
+        estimation sample is drawn:
+
+        - a sequence of ranges (e.g. every contiguous range of a preset,
+          :func:`drake_cert.certification.intervals.candidate_ranges`): no label is chosen
+          first; each range T is certified through its best label;
+        - a callable of a top label a giving the ranges that hold a, with a the base model's
+          prediction on ``x`` (``selection_n = 0``: one noise-free forward pass) or the most
+          frequent label among ``selection_n`` noisy samples from ``selection_seed`` (an
+          independent stream; ties to the least-friction label); or None: {a} alone.
 
         Estimation samples are examined at looks fixed in advance (:func:`look_plan`:
         Clopper-Pearson bounds at geometric looks with alpha split over the looks, or a
-        beta-mixture confidence sequence). At each look every candidate T gets
-        ``R_T = sigma/2 (PhiInv(L_a) + PhiInv(L_T))`` (:func:`sequential_radius`) from lower
-        bounds on a's probability and on T's mass; alpha is split over the m distinct
-        quantities and the looks, so all bounds hold at every look at once with probability
-        at least ``1 - alpha`` and stopping at any look keeps the guarantee (re-checking a
-        fixed-n bound after each batch would not). With probability at least ``1 - alpha``
-        over the noise, the exact smoothed label ``g(z)`` lies in the returned T for every z
-        with ``||z - x||_2 < radius`` (radius > eps). It stops when the most preferred
-        candidate not yet ruled out is certified (returned), when every candidate is ruled
-        out by the upper bounds (futility: costs no soundness; abstain), or at ``n_max``
-        (the most preferred candidate certified by then, or abstain).
+        beta-mixture confidence sequence). At each look a range T gets
+        ``R_T = max_a sigma/2 (PhiInv(L_a) + PhiInv(L_T))`` over its tested labels a
+        (:func:`sequential_radius`) from lower bounds on a's probability and on T's mass.
+        Alpha is split over the m tested quantities (labels and multi-label masses) and the
+        looks, so every bound holds at every look at once with probability at least
+        ``1 - alpha``, and stopping at any look keeps the guarantee (re-checking a fixed-n
+        bound after each batch would not): with probability at least ``1 - alpha`` over the
+        noise, the exact smoothed label ``g(z)`` lies in the returned T for every z with
+        ``||z - x||_2 < radius`` (radius > eps). It stops when the most preferred candidate
+        not yet ruled out is certified (returned), when every candidate is ruled out
+        (futility: even with the probabilities at their upper bounds the last look would not
+        certify it; it costs no soundness, only an abstention), or at ``n_max`` (the most
+        preferred candidate certified by then, or abstain).
 
         Args:
             x: the observed frame [C, H, W] in [0, 1].
@@ -242,6 +250,8 @@ class SmoothedClassifier(SmoothedModel):
             batch_size: most noisy copies per forward pass.
             seed: stream of the estimation noise.
             bound: "looks" (default) or "mixture"; first_look: the first look's least size.
+            futility_level: level of the upper bounds that give up (default 0.01): it trades
+                samples against certified frames, never soundness.
         """
         check_alpha(alpha)
         check_count(n_max, "n_max")
@@ -251,52 +261,62 @@ class SmoothedClassifier(SmoothedModel):
         if isinstance(selection_n, bool) or not isinstance(selection_n, (int, np.integer)) \
                 or selection_n < 0:
             raise CertificationError(f"selection_n = {selection_n!r} must be an integer >= 0")
+        selection_n = int(selection_n) if ranges is None or callable(ranges) else 0
+        top = None
         if selection_n:
             select_gen = make_generator(selection_seed, self.device)
-            top = select_label(self.sample_counts(x, int(selection_n), batch_size, select_gen,
+            top = select_label(self.sample_counts(x, selection_n, batch_size, select_gen,
                                                   selection=True))
-        else:
+        elif ranges is None or callable(ranges):
             top = self.base_label(x)
         candidates = self._candidates(ranges, top)
+        singles = sorted({top} if top is not None else {t for c in candidates for t in c})
         masses = sorted({c for c in candidates if len(c) > 1})
-        plan = look_plan(int(n_max), alpha, 1 + len(masses), bound=bound,
-                         first_look=first_look, batch_size=int(batch_size))
+        plan = look_plan(int(n_max), alpha, len(singles) + len(masses), bound=bound,
+                         threshold=float(norm.cdf(eps / self.sigma)), first_look=first_look,
+                         batch_size=int(batch_size), futility_level=futility_level)
         k = self.num_classes
         counts = np.zeros(k, dtype=np.int64)
         gen = make_generator(seed, self.device)
-        best: tuple[int, float, float, float] | None = None  # (candidate index, R, L_a, L_T)
+        best: tuple[int, float, int, float, float] | None = None  # (T, R, a, L_a, L_T)
         reason = "n_max"
         with torch.inference_mode():
             for look in plan.looks:
                 for out in self._sampler.outputs(x, look - int(counts.sum()), int(batch_size),
                                                  gen):
                     counts += torch.bincount(out.argmax(dim=1), minlength=k).cpu().numpy()
-                low_a, up_a = plan.bounds(int(counts[top]), look)
-                bounds = {c: plan.bounds(int(counts[list(c)].sum()), look) for c in masses}
+                bounds = {(a,): plan.bounds(int(counts[a]), look) for a in singles}
+                bounds |= {c: plan.bounds(int(counts[list(c)].sum()), look) for c in masses}
                 best, live = None, None
                 for i, c in enumerate(candidates):
-                    low_t, up_t = bounds[c] if len(c) > 1 else (low_a, up_a)
-                    radius = sequential_radius(low_a, low_t, self.sigma)
-                    if radius > eps and best is None:
-                        best = (i, radius, low_a, low_t)
-                    possible = 0.5 * self.sigma * (norm.ppf(up_a) + norm.ppf(up_t)) > eps
-                    if possible and live is None:
-                        live = i
+                    low_t, up_t = bounds[c]
+                    for a in (t for t in c if t in singles):
+                        low_a, up_a = bounds[(a,)]
+                        radius = sequential_radius(low_a, low_t, self.sigma)
+                        if radius > eps and (best is None or (best[0] == i
+                                                              and radius > best[1])):
+                            best = (i, radius, a, low_a, low_t)
+                        reachable = sequential_radius(plan.reachable_low(up_a),
+                                                      plan.reachable_low(up_t), self.sigma)
+                        if reachable > eps and live is None:
+                            live = i
                 if live is None:
                     reason = "futile"
                     break
                 if best is not None and best[0] <= live:
                     break
-        samples = int(counts.sum()) + int(selection_n)
-        common = dict(top_label=top, samples=samples, selection_samples=int(selection_n),
-                      eps=float(eps), alpha=float(alpha), bound=plan.name, counts=counts)
+        samples = int(counts.sum()) + selection_n
+        common = dict(samples=samples, selection_samples=selection_n, eps=float(eps),
+                      alpha=float(alpha), bound=plan.name, counts=counts)
         if best is None:
             return SequentialDecision(certified=False, labels=(), radius=0.0, p_low_top=0.0,
-                                      p_low_range=0.0, reason=reason, **common)
-        i, radius, low_a, low_t = best
+                                      p_low_range=0.0, reason=reason,
+                                      top_label=int(top if top is not None
+                                                    else select_label(counts)), **common)
+        i, radius, a, low_a, low_t = best
         return SequentialDecision(certified=True, labels=candidates[i], radius=radius,
-                                  p_low_top=low_a, p_low_range=low_t, reason="certified",
-                                  **common)
+                                  top_label=a, p_low_top=low_a, p_low_range=low_t,
+                                  reason="certified", **common)
 
     def base_label(self, x: torch.Tensor) -> int:
         """The base model's label on the frame itself (no noise), as evaluated."""
@@ -309,20 +329,24 @@ class SmoothedClassifier(SmoothedModel):
                                      f"expected [1, {self.num_classes}]")
         return int(out.argmax(dim=1)[0])
 
-    def _candidates(self, ranges: CandidateRanges | None, top: int) -> list[tuple[int, ...]]:
+    def _candidates(self, ranges: Ranges | None, top: int | None) -> list[tuple[int, ...]]:
         if ranges is None:
             return [(top,)]
         try:
-            listed = [tuple(sorted(set(int(t) for t in c))) for c in ranges(top)]
+            listed = [tuple(sorted(set(int(t) for t in c)))
+                      for c in (ranges(top) if callable(ranges) else ranges)]
         except (TypeError, ValueError):
-            raise CertificationError("ranges must map a label to a list of label ranges "
-                                     f"(sequences of label indices); got {ranges!r}") from None
+            raise CertificationError("ranges must be label ranges (sequences of label "
+                                     "indices), or a function of the top label giving them; "
+                                     f"got {ranges!r}") from None
         for c in listed:
-            if top not in c or not all(0 <= t < self.num_classes for t in c):
-                raise CertificationError(f"candidate range {list(c)} of label {top} must "
-                                         f"contain it and lie within 0..{self.num_classes - 1}")
+            if not c or not all(0 <= t < self.num_classes for t in c) \
+                    or (top is not None and top not in c):
+                held = f" containing label {top}" if top is not None else ""
+                raise CertificationError(f"candidate range {list(c)} must be a non-empty range"
+                                         f"{held} within 0..{self.num_classes - 1}")
         if not listed:
-            raise CertificationError(f"ranges({top}) listed no candidate range")
+            raise CertificationError("no candidate range was listed")
         return listed
 
     def _members(self, safe_set: SafeSet, top: int) -> tuple[int, ...]:

@@ -113,16 +113,16 @@ def _preference(cert: RuntimeCertificate) -> tuple[float, float, int]:
     return (cert.width_n_per_rad, cert.stiffness_lo_n_per_rad, len(cert.labels))
 
 
-def candidate_ranges(table, preset: str, label_names: Sequence[str] | None = None):
-    """The candidates of a sequential decision (:meth:`SmoothedClassifier.decide`): a function
-    of the top label's index giving the preset's contiguous label ranges that hold it, as
-    label-index tuples, in the order :func:`runtime_classification_interval` prefers them
-    (narrowest hull, then the lower C_lo, then the fewer labels); the whole family (the
-    fallback) is not a candidate. Depends on the table only, never on the noise."""
+def candidate_ranges(table, preset: str,
+                     label_names: Sequence[str] | None = None) -> list[tuple[int, ...]]:
+    """The candidates of a sequential decision (:meth:`SmoothedClassifier.decide`): every
+    contiguous label range of the preset but the whole family (the fallback), as label-index
+    tuples, in the order :func:`runtime_classification_interval` prefers them (narrowest
+    hull, then the lower C_lo, then the fewer labels). Depends on the table only, never on
+    the noise. ``[c for c in ranges if a in c]`` are those holding a label a."""
     names = list(label_names) if label_names is not None else list(table.preset(preset).labels)
     index = {name: i for i, name in enumerate(names)}
     family = tuple(table.preset(preset).labels)
-    by_label: dict[int, list[tuple[int, ...]]] = {i: [] for i in range(len(names))}
     ranked = []
     for rng in table.contiguous_ranges(preset):
         if len(rng) == len(family):
@@ -131,11 +131,8 @@ def candidate_ranges(table, preset: str, label_names: Sequence[str] | None = Non
             raise CertificationError(f"preset {preset!r} label {rng} not among the classifier's "
                                      f"labels {names}")
         lo, hi = table.hull(rng)
-        ranked.append(((hi - lo, lo, len(rng)), tuple(index[name] for name in rng)))
-    for _, members in sorted(ranked):
-        for i in members:
-            by_label[i].append(members)
-    return lambda top: by_label[int(top)]
+        ranked.append(((hi - lo, lo, len(rng)), tuple(sorted(index[name] for name in rng))))
+    return [members for _, members in sorted(ranked)]
 
 
 def runtime_decision_interval(decision: SequentialDecision, table, preset: str,

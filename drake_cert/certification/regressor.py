@@ -98,8 +98,8 @@ class MedianSmoothedRegressor(SmoothedModel):
 
     def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
                intervals: Callable[[float], Sequence[tuple[float, float]]], *,
-               seed: int | None = None, bound: str = "looks",
-               first_look: int = 32) -> MedianDecision:
+               seed: int | None = None, bound: str = "looks", first_look: int = 32,
+               futility_level: float = 0.01) -> MedianDecision:
         """Is the smoothed median of every frame within ``eps`` of ``x`` inside one of the
         candidate intervals? Decided sequentially (a confidence sequence for quantiles).
 
@@ -134,9 +134,10 @@ class MedianSmoothedRegressor(SmoothedModel):
                                      "list of (lo, hi) with lo <= hi")
         his = sorted({hi for _, hi in candidates})
         los = sorted({lo for lo, _ in candidates})
-        plan = look_plan(int(n_max), alpha, len(his) + len(los), bound=bound,
-                         first_look=first_look, batch_size=int(batch_size))
         p_high = float(norm.cdf(eps / self.sigma))
+        plan = look_plan(int(n_max), alpha, len(his) + len(los), bound=bound,
+                         threshold=p_high, first_look=first_look, batch_size=int(batch_size),
+                         futility_level=futility_level)
         below = dict.fromkeys(his, 0)  # samples with y <= hi
         above = dict.fromkeys(los, 0)  # samples with y >= lo
         t, gen, chosen, reason = 0, make_generator(seed, self.device), -1, "n_max"
@@ -154,7 +155,8 @@ class MedianSmoothedRegressor(SmoothedModel):
                 hi_b = {hi: plan.bounds(below[hi], t) for hi in his}
                 lo_b = {lo: plan.bounds(above[lo], t) for lo in los}
                 live = next((i for i, (lo, hi) in enumerate(candidates)
-                             if hi_b[hi][1] > p_high and lo_b[lo][1] > p_high), None)
+                             if plan.reachable_low(hi_b[hi][1]) > p_high
+                             and plan.reachable_low(lo_b[lo][1]) > p_high), None)
                 if live is None:
                     reason = "futile"
                     break
