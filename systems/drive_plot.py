@@ -11,7 +11,8 @@ import numpy as np
 TAPE_COLUMNS = ("time_s", "e1_m", "e1dot_mps", "e2_rad", "e2dot_radps", "steering_rad",
                 "speed_mps", "speed_command_mps", "arc_length_m", "curvature_per_m",
                 "interval_lo_n_per_rad", "interval_hi_n_per_rad", "true_stiffness_n_per_rad",
-                "design_index", "certified_radius", "status")
+                "design_index", "certified_radius", "status", "design_lo_n_per_rad",
+                "design_hi_n_per_rad", "design_speed_mps")
 
 
 def tape_matrix(tape) -> np.ndarray:
@@ -19,7 +20,8 @@ def tape_matrix(tape) -> np.ndarray:
     return np.column_stack([
         tape.times_s, tape.states, tape.steering_rad, tape.speed_mps, tape.speed_command_mps,
         tape.arc_length_m, tape.curvature_per_m, tape.interval_n_per_rad,
-        tape.true_stiffness_n_per_rad, tape.design_index, tape.certified_radius, tape.status])
+        tape.true_stiffness_n_per_rad, tape.design_index, tape.certified_radius, tape.status,
+        tape.design_interval_n_per_rad, tape.design_speed_mps])
 
 
 def tape_bytes(results, path: str) -> bytes:
@@ -42,8 +44,9 @@ def tape_bytes(results, path: str) -> bytes:
 
 
 def drive_figure_png(results) -> bytes:
-    """Lateral offset (with the lane margin), speed (with the command) and the interval in
-    force against the true stiffness, for each drive side by side."""
+    """Lateral offset (with the lane margin), speed (with the command and the safe speed of the
+    design in force) and the design in force against the true stiffness under the car (the
+    latest look-ahead decision dotted), for each drive side by side."""
     from matplotlib.figure import Figure
 
     fig = Figure(figsize=(5.5 * len(results), 7.5))
@@ -60,12 +63,21 @@ def drive_figure_png(results) -> bytes:
         ax = axes[1, j]
         ax.plot(t, tape.speed_mps, label="speed")
         ax.step(t, tape.speed_command_mps, where="post", ls="--", label="command (look-ahead)")
+        ax.step(t, tape.design_speed_mps, where="post", color="g", lw=1,
+                label="safe speed of the design in force")
         ax.set_ylabel("speed (m/s)")
         ax.legend(fontsize=7)
         ax = axes[2, j]
-        ax.fill_between(t, tape.interval_n_per_rad[:, 0] / 1e3, tape.interval_n_per_rad[:, 1] / 1e3,
-                        step="post", alpha=0.3, label="interval (look-ahead)")
+        ax.fill_between(t, tape.design_interval_n_per_rad[:, 0] / 1e3,
+                        tape.design_interval_n_per_rad[:, 1] / 1e3, step="post", alpha=0.3,
+                        label="design in force")
+        for edge in (0, 1):
+            ax.step(t, tape.interval_n_per_rad[:, edge] / 1e3, where="post", color="tab:orange",
+                    lw=0.8, ls=":", label=None if edge else "latest decision (look-ahead)")
         ax.plot(t, tape.true_stiffness_n_per_rad / 1e3, "k", lw=1, label="true C (at the car)")
+        covers = 100 * (s["design_covers_true_fraction"] or 0.0)
+        ax.set_title(f"design in force holds true C {covers:.1f}% of the time; unprotected "
+                     f"{s['time_unprotected_s']:.2f} s", fontsize=8)
         ax.set_ylabel("stiffness (kN/rad)")
         ax.set_xlabel("time (s)")
         ax.legend(fontsize=7)

@@ -71,10 +71,12 @@ class DriveTape:
     curvature_per_m: np.ndarray  # (N,) curvature at the car
     interval_n_per_rad: np.ndarray  # (N, 2) latest certified interval (look-ahead point)
     true_stiffness_n_per_rad: np.ndarray  # (N,) true C of the segment the car is on
-    design_index: np.ndarray  # (N,) design the controller is running
+    design_index: np.ndarray  # (N,) design the controller is running (the design in force)
     certified_radius: np.ndarray  # (N,) radius of the latest interval (0: none)
     status: np.ndarray  # (N,) 0 certified, 1 envelope, 2 stop, 3 base
     lane_margin_m: float
+    design_interval_n_per_rad: np.ndarray  # (N, 2) stiffness interval of the design in force
+    design_speed_mps: np.ndarray  # (N,) safe speed of the design in force (0: none)
 
     @property
     def lateral_offset_m(self) -> np.ndarray:
@@ -408,6 +410,34 @@ def drive_scenario(scenario: Scenario, *, vehicle: VehicleParams, settings: Sett
         return drive(built, progress=progress)
 
 
+def _in_force(designs: list[ControllerDesign], index: np.ndarray) -> dict:
+    """The interval (N/rad) and safe speed (m/s, 0 if none) of the design in force per sample."""
+    lo = np.array([d.stiffness_lo_n_per_rad for d in designs])
+    hi = np.array([d.stiffness_hi_n_per_rad for d in designs])
+    speed = np.array([float(d.speed_mps) if d.has_safe_speed else 0.0 for d in designs])
+    return dict(design_interval_n_per_rad=np.column_stack([lo[index], hi[index]]),
+                design_speed_mps=speed[index])
+
+
+def protection(tape: DriveTape, speed_slack_mps: float = 0.1) -> tuple[float | None, float]:
+    """``(design_covers_true_fraction, time_unprotected_s)`` of a drive (DESIGN 6).
+
+    Over the tape's samples (each standing for the time to the next one): the share of time in
+    which the design in force holds the true stiffness under the car, and the time (s) in which
+    it does not, or the car is faster than that design's safe speed plus ``speed_slack_mps``.
+    The tape's period (50 ms by default) is the resolution of both.
+    """
+    if len(tape.times_s) < 2:
+        return None, 0.0
+    dt = np.diff(tape.times_s)
+    c = tape.true_stiffness_n_per_rad[:-1]
+    lo, hi = tape.design_interval_n_per_rad[:-1, 0], tape.design_interval_n_per_rad[:-1, 1]
+    covered = (lo <= c) & (c <= hi)
+    too_fast = tape.speed_mps[:-1] > tape.design_speed_mps[:-1] + speed_slack_mps
+    return (float(np.sum(dt * covered) / np.sum(dt)),
+            float(np.sum(dt * (~covered | too_fast))))
+
+
 def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
     logs = {k: _read(v, context) for k, v in built.loggers.items()}
     n = min(len(t) for t, _ in logs.values())
@@ -418,7 +448,8 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
         arc_length_m=col["arc_length"][:, 0], curvature_per_m=col["curvature"][:, 0],
         interval_n_per_rad=col["interval"], true_stiffness_n_per_rad=col["true_stiffness"][:, 0],
         design_index=col["design"][:, 0].astype(int), certified_radius=col["radius"][:, 0],
-        status=col["status"][:, 0].astype(int), lane_margin_m=built.vehicle.lane_margin_m)
+        status=col["status"][:, 0].astype(int), lane_margin_m=built.vehicle.lane_margin_m,
+        **_in_force(built.designs, col["design"][:, 0].astype(int)))
     ticks_raw = {k: _read(v, context) for k, v in built.tick_loggers.items()}
     m = min(len(t) for t, _ in ticks_raw.values())
     seen = ticks_raw["seen_stiffness"][1][:m, 0]
@@ -449,6 +480,8 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     mean_speed = float(np.sum(tape.speed_mps[:-1] * dt) / np.sum(dt)) if len(dt) else \
         float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
     peak = float(np.max(np.abs(tape.lateral_offset_m))) if len(tape.times_s) else 0.0
+    design_covers, unprotected = protection(tape)
+    attacked = scenario.attack.kind in ("sa", "ea")
     return {
         "scenario": scenario.name,
         "pipeline": scenario.perception.pipeline,
@@ -469,6 +502,10 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "real_time_factor": float(simulated_s / wall_s) if wall_s > 0 else None,
         "camera_ticks": int(len(ticks.times_s)),
         "interval_covers_true_fraction": float(np.mean(covers)) if len(covers) else None,
+        "design_covers_true_fraction": design_covers,
+        "time_unprotected_s": unprotected,
+        "attack_within_certified_budget": (not attacked
+                                           or scenario.attack.eps <= scenario.perception.eps),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
         "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
         "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,

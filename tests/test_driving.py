@@ -130,3 +130,55 @@ def test_every_shipped_scenario_certified_under_sa_stays_in_lane(setup, name):
     result = drive_scenario(scenario, **setup)
     assert not result.summary["left_lane"], result.summary
     assert result.summary["ending"] == "route end"
+
+
+def hand_tape(truth, lo, hi, speed, design_speed, dt=0.05):
+    """A DriveTape from per-sample arrays: only the fields the protection metrics read matter."""
+    from systems.driving import DriveTape
+
+    n = len(truth)
+    zeros = np.zeros(n)
+    return DriveTape(times_s=np.arange(n) * dt, states=np.zeros((n, 4)), steering_rad=zeros,
+                     speed_mps=np.asarray(speed, float), speed_command_mps=zeros,
+                     arc_length_m=zeros, curvature_per_m=zeros,
+                     interval_n_per_rad=np.zeros((n, 2)),
+                     true_stiffness_n_per_rad=np.asarray(truth, float),
+                     design_index=np.zeros(n, int), certified_radius=zeros,
+                     status=np.zeros(n, int), lane_margin_m=0.85,
+                     design_interval_n_per_rad=np.column_stack([lo, hi]).astype(float),
+                     design_speed_mps=np.asarray(design_speed, float))
+
+
+def test_unprotected_time_counts_a_design_missing_the_truth_or_a_car_too_fast_for_it():
+    from systems.driving import protection
+
+    n = 21  # 20 intervals of 50 ms
+    truth = np.full(n, 50e3)
+    lo, hi = np.full(n, 40e3), np.full(n, 60e3)
+    lo[4:8] = 60e3  # 4 samples (0.2 s) under a design for 60-120 kN/rad: truth outside
+    speed, design_speed = np.full(n, 10.0), np.full(n, 10.0)
+    speed[12:14] = 10.2  # 2 samples (0.1 s) faster than the design's speed + 0.1 m/s
+    speed[15] = 10.05  # within the 0.1 m/s slack: protected
+    covers, unprotected = protection(hand_tape(truth, lo, hi, speed, design_speed))
+    assert covers == pytest.approx(16 / 20)
+    assert unprotected == pytest.approx(0.3)
+    all_good = protection(hand_tape(truth, np.full(n, 40e3), hi, np.full(n, 9.0), design_speed))
+    assert all_good == (1.0, 0.0)
+
+
+def test_the_drive_summary_reports_the_design_in_force_beside_the_look_ahead_figure(setup):
+    scenario = dataclasses.replace(with_overrides(snow_curve(), pipeline="certified",
+                                                  attack="sa"), t_final_s=3.0)
+    result = drive_scenario(scenario, **setup)
+    s, tape = result.summary, result.tape
+    assert {"interval_covers_true_fraction", "design_covers_true_fraction",
+            "time_unprotected_s", "attack_within_certified_budget"} <= set(s)
+    assert s["attack_within_certified_budget"]  # the shipped attack is inside the budget
+    lo, hi = tape.design_interval_n_per_rad.T
+    table = {i: d for i, d in enumerate(preset_designs(setup["designs"], setup["conditions"],
+                                                       scenario.perception.preset))}
+    for i, a, b in zip(tape.design_index, lo, hi, strict=True):
+        assert (a, b) == tuple(table[int(i)].interval)
+    over = with_overrides(scenario, eps=scenario.perception.eps * 1.5)
+    assert not drive_scenario(dataclasses.replace(over, t_final_s=0.5),
+                              **setup).summary["attack_within_certified_budget"]

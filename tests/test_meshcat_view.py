@@ -17,7 +17,9 @@ def tape_along(route, status: int, seconds: float = 3.0) -> DriveTape:
                      speed_command_mps=np.full(n, 10.0), arc_length_m=10.0 * t,
                      curvature_per_m=np.zeros(n), interval_n_per_rad=np.zeros((n, 2)),
                      true_stiffness_n_per_rad=np.zeros(n), design_index=np.zeros(n, int),
-                     certified_radius=np.zeros(n), status=np.full(n, status), lane_margin_m=0.85)
+                     certified_radius=np.zeros(n), status=np.full(n, status), lane_margin_m=0.85,
+                     design_interval_n_per_rad=np.zeros((n, 2)),
+                     design_speed_mps=np.full(n, 10.0))
 
 
 def test_both_cars_and_the_road_are_in_the_recorded_page():

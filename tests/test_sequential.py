@@ -188,7 +188,7 @@ def test_looks_are_fixed_in_advance_and_split_alpha_over_the_certifying_ones():
 @pytest.mark.parametrize("kwargs, match", [
     (dict(eps=-1.0), "eps"), (dict(n_max=0), "n_max"), (dict(alpha=1.5), "alpha"),
     (dict(ranges=lambda a: [(1,)]), "containing"), (dict(ranges=lambda a: []), "no candidate"),
-    (dict(ranges=[(0, 5)]), "within"),
+    (dict(ranges=[(0, 5)]), "within"), (dict(ranges=[(0,)], selection_n=5), "selection_n"),
     (dict(selection_n=-3), "selection_n"), (dict(bound="fixed"), "bound"),
 ])
 def test_bad_arguments_raise_certification_error(kwargs, match):

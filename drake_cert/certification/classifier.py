@@ -64,17 +64,18 @@ class ClassCertificate:
 SafeSet = Callable[[int], Iterable[int]] | Mapping[int, Iterable[int]] | Sequence[Iterable[int]]
 Ranges = Sequence[Iterable[int]] | Callable[[int], Sequence[Iterable[int]]]
 
+
 @dataclasses.dataclass(frozen=True)
 class SequentialDecision:
     """Outcome of :meth:`SmoothedClassifier.decide`: is a label range certified at radius eps?
 
-    ``labels`` is the certified range T (the first candidate, in the caller's order of
-    preference, that was certified), empty on abstain. ``samples`` counts every noisy sample
-    drawn, selection included (``selection_samples`` of them chose the top label; 0 when the
-    base model's prediction on the observed frame chose it). ``radius`` is the radius the
-    bounds certify for T (>= eps when certified, 0 otherwise); ``p_low_top`` and
-    ``p_low_range`` the lower confidence bounds behind it, on the top label's probability and
-    on T's total mass. ``bound`` names the confidence sequence and ``alpha`` its level.
+    ``labels`` is the certified range T (the most preferred candidate certified at some
+    look), empty on abstain. ``samples`` counts every noisy sample drawn, selection included
+    (``selection_samples`` of them chose a top label). ``radius`` is the radius the bounds
+    certify for T (> eps when certified, 0 otherwise); ``top_label`` the label of T it was
+    certified through (on abstain: the chosen or the most frequent label); ``p_low_top`` and
+    ``p_low_range`` the lower confidence bounds behind it, on that label's probability and on
+    T's mass. ``bound`` names the bounds and their looks, ``alpha`` the overall level.
     """
 
     certified: bool
@@ -261,7 +262,9 @@ class SmoothedClassifier(SmoothedModel):
         if isinstance(selection_n, bool) or not isinstance(selection_n, (int, np.integer)) \
                 or selection_n < 0:
             raise CertificationError(f"selection_n = {selection_n!r} must be an integer >= 0")
-        selection_n = int(selection_n) if ranges is None or callable(ranges) else 0
+        if selection_n and not (ranges is None or callable(ranges)):
+            raise CertificationError("selection_n chooses a top label: give ranges as a "
+                                     "function of that label (or None), not a fixed list")
         top = None
         if selection_n:
             select_gen = make_generator(selection_seed, self.device)
@@ -287,14 +290,14 @@ class SmoothedClassifier(SmoothedModel):
                     counts += torch.bincount(out.argmax(dim=1), minlength=k).cpu().numpy()
                 bounds = {(a,): plan.bounds(int(counts[a]), look) for a in singles}
                 bounds |= {c: plan.bounds(int(counts[list(c)].sum()), look) for c in masses}
-                best, live = None, None
+                live = None  # best: kept across looks (every look's bounds hold at once)
                 for i, c in enumerate(candidates):
                     low_t, up_t = bounds[c]
                     for a in (t for t in c if t in singles):
                         low_a, up_a = bounds[(a,)]
                         radius = sequential_radius(low_a, low_t, self.sigma)
-                        if radius > eps and (best is None or (best[0] == i
-                                                              and radius > best[1])):
+                        if radius > eps and (best is None or (i, -radius) < (best[0],
+                                                                              -best[1])):
                             best = (i, radius, a, low_a, low_t)
                         reachable = sequential_radius(plan.reachable_low(up_a),
                                                       plan.reachable_low(up_t), self.sigma)
@@ -305,8 +308,8 @@ class SmoothedClassifier(SmoothedModel):
                     break
                 if best is not None and best[0] <= live:
                     break
-        samples = int(counts.sum()) + selection_n
-        common = dict(samples=samples, selection_samples=selection_n, eps=float(eps),
+        samples = int(counts.sum()) + int(selection_n)
+        common = dict(samples=samples, selection_samples=int(selection_n), eps=float(eps),
                       alpha=float(alpha), bound=plan.name, counts=counts)
         if best is None:
             return SequentialDecision(certified=False, labels=(), radius=0.0, p_low_top=0.0,

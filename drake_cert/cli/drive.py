@@ -181,6 +181,7 @@ def format_summaries(summaries: list[dict]) -> str:
             ("peak_abs_e1_m", "{:.3f}"), ("time_left_lane_s", "{:.2f}"),
             ("mean_speed_mps", "{:.2f}"), ("min_speed_mps", "{:.2f}"),
             ("distance_m", "{:.1f}"), ("interval_covers_true_fraction", "{:.3f}"),
+            ("design_covers_true_fraction", "{:.3f}"), ("time_unprotected_s", "{:.2f}"),
             ("envelope_fraction", "{:.3f}"), ("design_switches", "{}"),
             ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
             ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
@@ -194,6 +195,10 @@ def format_summaries(summaries: list[dict]) -> str:
             v = s.get(key)
             cells.append("-" if v is None else fmt.format(v))
         lines.append(f"  {key:<30}" + "".join(f"{c:>14}" for c in cells))
+    for s in summaries:
+        if not s.get("attack_within_certified_budget", True):
+            lines.append(f"  WARNING: {s['pipeline']}: attack budget {s['attack_eps']:g} exceeds "
+                         f"the certified eps {s['certified_eps']:g}: no certificate covers it")
     return "\n".join(lines)
 
 
