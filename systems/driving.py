@@ -166,6 +166,22 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
                                                                     streams.CALIBRATION))
 
 
+def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable,
+                    preset: str) -> tuple[list[ControllerDesign], int]:
+    """The preset's designs and the index of its envelope design; :class:`ConfigError` when the
+    envelope has no safe speed (the car would stand still wherever it abstains)."""
+    table = preset_designs(designs, conditions, preset)
+    envelope = envelope_design_index(table, conditions, preset)
+    if not table[envelope].has_safe_speed:
+        raise ConfigError(
+            f"the design table has no safe speed for the envelope of preset {preset!r} "
+            f"(labels {list(table[envelope].labels)}; failed: "
+            f"{table[envelope].failed_condition or 'unknown'}): the certified car would "
+            "stand still wherever it abstains; synthesize designs for this vehicle that give "
+            "the envelope a safe speed")
+    return table, envelope
+
+
 def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sigma: float):
     """The module perception evaluates: ``model`` itself (torch) or its ONNX Runtime session
     (fp32 or int8, the latter calibrated on noisy copies of calibration frames)."""
@@ -208,8 +224,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         raise ConfigError("the driving Diagram runs the piecewise-constant law (controller.law);"
                           " the gradient law is available in `drake-cert simulate`")
     certified = p.pipeline == "certified"
-    table = preset_designs(designs, conditions, p.preset)
-    envelope = envelope_design_index(table, conditions, p.preset)
+    table, envelope = moving_envelope(designs, conditions, p.preset)
     route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma

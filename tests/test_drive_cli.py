@@ -62,3 +62,37 @@ def test_seed_none_draws_fresh_noise_and_records_the_seed_to_replay_it(designs, 
     assert replay["seed_source"] == "scenario"
     assert replay["mean_samples_per_tick"] == runs[0]["mean_samples_per_tick"]
     assert replay["peak_abs_e1_m"] == runs[0]["peak_abs_e1_m"]
+
+
+def test_drive_uses_the_design_files_vehicle_and_refuses_another(designs, tmp_path, capsys):
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "drake_cert" / "data" / "vehicle.yaml"
+    assert main(["drive", "--scenario", "dry_to_snow", "--duration", "0.3", "--designs",
+                 designs, "--vehicle", str(shipped), "--json"]) == 0  # the same vehicle
+    capsys.readouterr()
+    van = tmp_path / "van.yaml"
+    van.write_text(shipped.read_text().replace("mass_kg: 1573.0", "mass_kg: 2600.0"))
+    assert main(["drive", "--scenario", "dry_to_snow", "--duration", "0.3", "--designs",
+                 designs, "--vehicle", str(van)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "mass_kg = 2600.0" in err[0] and "1573.0" in err[0]
+
+
+def test_a_table_whose_envelope_has_no_safe_speed_is_refused_not_driven(designs, tmp_path,
+                                                                         capsys):
+    import dataclasses
+
+    from drake_cert.config import load_conditions
+    from synthesis.design_io import load_design_file, save_design_table
+
+    table = load_design_file(designs)
+    family = tuple(load_conditions().preset("robotcar-like").labels)
+    stuck = [dataclasses.replace(d, speed_mps=0.0, failed_condition="l1_condition")
+             if tuple(d.labels) == family else d for d in table.designs]
+    path = tmp_path / "stuck.yaml"
+    save_design_table(path, dataclasses.replace(table, designs=stuck))
+    assert main(["drive", "--scenario", "dry_to_snow", "--duration", "0.3", "--designs",
+                 str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no safe speed for the envelope" in err[0]

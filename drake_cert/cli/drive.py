@@ -45,7 +45,12 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="stop after S simulated seconds (default: the scenario's t_final_s;"
                              " 0 there means: until the route's end)")
     parser.add_argument("--designs", metavar="FILE", default=None,
-                        help="design table from `synthesize --out` (default: synthesize now)")
+                        help="design table from `synthesize --out`; the drive uses the vehicle, "
+                             "settings and conditions it was synthesized for (default: "
+                             "synthesize now)")
+    parser.add_argument("--vehicle", metavar="FILE", default=None,
+                        help="vehicle YAML; with --designs it must equal the design file's "
+                             "vehicle (default: the design file's, else the shipped vehicle)")
     parser.add_argument("--json", action="store_true", help="print the summary as JSON")
     parser.add_argument("--plot", metavar="PNG", default=None,
                         help="write lateral offset, speed and interval vs truth to this PNG")
@@ -89,21 +94,38 @@ def _seed(text: str) -> int | str:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer or 'none'") from None
 
 
-def _designs(args, vehicle, conditions, settings):
-    if args.designs:
-        from synthesis.design_io import load_design_file
+def _setup(args) -> dict:
+    """Vehicle, settings, conditions and designs of the drive: a design file's own (a
+    ``--vehicle`` that differs from it is refused), or the shipped files and a fresh table."""
+    import dataclasses
 
-        return list(load_design_file(args.designs).designs)
-    from synthesis.table import synthesize_table
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from drake_cert.errors import ConfigError
 
-    return synthesize_table(vehicle, conditions, settings)
+    vehicle = load_vehicle(args.vehicle) if args.vehicle else None
+    if not args.designs:
+        from synthesis.table import synthesize_table
+
+        vehicle, conditions, settings = vehicle or load_vehicle(), load_conditions(), \
+            load_settings()
+        return dict(vehicle=vehicle, settings=settings, conditions=conditions,
+                    designs=synthesize_table(vehicle, conditions, settings))
+    from synthesis.design_io import load_design_file
+
+    table = load_design_file(args.designs)
+    if vehicle is not None and vehicle != table.vehicle:
+        mine, theirs = dataclasses.asdict(vehicle), dataclasses.asdict(table.vehicle)
+        field = next(k for k in mine if mine[k] != theirs[k])
+        raise ConfigError(f"--vehicle {args.vehicle}: {field} = {mine[field]!r}, but "
+                          f"{args.designs} was synthesized for {field} = {theirs[field]!r}; "
+                          "synthesize designs for this vehicle (drake-cert synthesize "
+                          "--vehicle FILE)")
+    return dict(vehicle=table.vehicle, settings=table.settings,
+                conditions=table.conditions or load_conditions(), designs=list(table.designs))
 
 
 def run(args) -> int:
     _check_outputs(args)
-
-    from drake_cert.config import load_conditions, load_settings, load_vehicle
-
     pipelines = PIPELINES if args.compare else (args.pipeline,)
     # Scenarios are rebuilt from these choices in each worker (Drake's SimulatorConfig inside a
     # scenario does not pickle); loading one here first reports a bad scenario in one line.
@@ -117,9 +139,10 @@ def run(args) -> int:
 
         seed, seed_source = entropy_seed(), "os-entropy"
         choices = [dict(c, seed=seed) for c in choices]
-    vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
-    designs = _designs(args, vehicle, conditions, settings)
-    common = dict(vehicle=vehicle, settings=settings, conditions=conditions, designs=designs)
+    common = _setup(args)
+    from systems.driving import moving_envelope
+
+    moving_envelope(common["designs"], common["conditions"], first.perception.preset)
     if len(choices) == 1:
         results = [_drive_with_bar(choices[0], common, position=0)]
     else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
