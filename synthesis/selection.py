@@ -44,6 +44,25 @@ def envelope_design_index(designs: Sequence[ControllerDesign], conditions: Condi
     return design_index_for_labels(designs, conditions.preset(preset).labels)
 
 
+def join_design_indices(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                        preset: str) -> dict[tuple[int, int], int]:
+    """For every pair (i, j) of the preset's designs, the index of the design whose label range
+    is the hull of both ranges in the preset's friction order: the narrowest design of the
+    table that holds every stiffness either design holds (the join). ``designs`` as
+    :func:`preset_designs` returns them."""
+    family = list(conditions.preset(preset).labels)
+    span = []
+    for d in designs:
+        places = [family.index(label) for label in d.labels]
+        span.append((min(places), max(places)))
+    join = {}
+    for i, (a_lo, a_hi) in enumerate(span):
+        for j, (b_lo, b_hi) in enumerate(span):
+            hull = family[min(a_lo, b_lo):max(a_hi, b_hi) + 1]
+            join[(i, j)] = design_index_for_labels(designs, hull)
+    return join
+
+
 def narrowest_containing_design_index(designs: Sequence[ControllerDesign],
                                       interval: tuple[float, float]) -> int | None:
     """Index of the narrowest design whose stiffness interval contains ``interval`` (N/rad);

@@ -18,12 +18,13 @@ latest :class:`PerceptionResult` into a :class:`Decision`:
   design, never a nominal value. The state before the first tick is the envelope too.
 
 The speed command is the design's safe speed, or 0 (stop) when the design has none.
-Dwell time: the design changes at most once per ``dwell_time_s``; a request for another
-design inside the dwell is held back (the design in force stays, its speed command is
-``min(held design speed, requested design speed)``) and applies at the first tick after the
-dwell has elapsed if still requested; the applied decision keeps the look point of the tick
-that first requested it. A request that changes while held back restarts the hold's look
-point; one that is no longer requested is dropped.
+Dwell time: a request for a design that holds every stiffness the current one holds (a wider
+label range: slower, safer) applies at once. Any other change waits until ``dwell_time_s``
+has passed since the last switch: meanwhile the join of the two designs is in force (the design
+of the hull of both label ranges, which holds both: itself a widening, so at once), with the
+speed command ``min(join speed, requested speed)``; the request applies at the first tick after
+the dwell if still requested, from the look point of the tick that first requested it. A request
+that changes while held back restarts the hold's look point; one no longer requested is dropped.
 """
 
 import dataclasses
@@ -43,6 +44,7 @@ from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
 from synthesis.design_io import DesignTable
+from synthesis.selection import join_design_indices
 from synthesis.table import friction_lower_bound
 from systems.perception_smoothing import PerceptionResult
 
@@ -168,6 +170,12 @@ class CertifiedInterval(LeafSystem):
             for rng in conditions.contiguous_ranges(preset):
                 if tuple(rng) not in self._by_labels:
                     raise ConfigError(f"designs hold no design for the label range {rng}")
+        complete = all(tuple(rng) in self._by_labels
+                       for rng in conditions.contiguous_ranges(preset))
+        # join[(i, j)]: the design of the hull of both label ranges (holds both); without
+        # every range's design (a partial regression table) held requests keep the old design.
+        self._join = (join_design_indices(self.designs, conditions, preset)
+                      if complete and all(d.labels for d in self.designs) else None)
 
         period = 1.0 / float(rate_hz)
         self.offset_s = 0.5 * period if offset_s is None else float(offset_s)
@@ -288,6 +296,10 @@ class CertifiedInterval(LeafSystem):
         cur = state.decision
         if req.design_index == cur.design_index:
             return _DwellState(req, state.switched_at_s, None)
+        join = (self._join[(cur.design_index, req.design_index)] if self._join is not None
+                else cur.design_index)
+        if join == req.design_index:  # req holds every stiffness cur holds: at once
+            return _DwellState(req, t, None)
         if t - state.switched_at_s >= self.dwell_time_s - 1e-9:
             position = (state.pending[1] if state.pending is not None
                         and state.pending[0] == req.design_index else req.position_m)
@@ -295,14 +307,17 @@ class CertifiedInterval(LeafSystem):
         pending = (state.pending if state.pending is not None
                    and state.pending[0] == req.design_index
                    else (req.design_index, req.position_m))
+        in_force = cur if join == cur.design_index else self._decision(p, join, req.status,
+                                                                         req.radius)
         held = dataclasses.replace(
-            cur, time_s=t, position_m=pending[1],
-            speed_command_mps=min(_speed(self.designs[cur.design_index]), req.speed_command_mps),
+            in_force, time_s=t, position_m=pending[1],
+            speed_command_mps=min(_speed(self.designs[join]), req.speed_command_mps),
             true_stiffness_n_per_rad=req.true_stiffness_n_per_rad,
             true_label_index=req.true_label_index, tick=req.tick,
             requested_design_index=req.design_index, held=True, frame_ok=req.frame_ok,
             error=req.error)
-        return _DwellState(held, state.switched_at_s, pending)
+        switched = state.switched_at_s if join == cur.design_index else t
+        return _DwellState(held, switched, pending)
 
     # ------------------------------------------------------------------ Drake plumbing
     def _update(self, context, state) -> EventStatus:

@@ -42,7 +42,7 @@ from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
-from synthesis.selection import envelope_design_index, preset_designs
+from synthesis.selection import envelope_design_index, join_design_indices, preset_designs
 from systems import streams
 from systems.attacker import Attacker
 from systems.camera import CameraSource
@@ -247,7 +247,9 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         max_decel_mps2=scenario.motion.max_decel_mps2,
         max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
         initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
-        rate_hz=cam.rate_hz, offset_s=0.75 * period))
+        rate_hz=cam.rate_hz, offset_s=0.75 * period,
+        join=join_design_indices(table, conditions, p.preset),
+        design_speeds_mps=[float(d.speed_mps) if d.has_safe_speed else 0.0 for d in table]))
     ctl = settings.controller
     preview = ctl.preview_window_s > 0
     road = add("route", RouteSource(route, preview_ahead_s=ctl.preview_ahead_s,

@@ -17,11 +17,15 @@ Output ports (size 1):
   ``design_index``         the design of the latest profile entry with position <= x
   ``speed_reference_mps``  v_ref(x) below (m/s)
 
-Profile (a periodic unrestricted update at the camera rate, offset 3T/4 by default): a decision
-at position p supersedes the entries at positions >= p (a newer decision about the same stretch
-of road, e.g. a dwell-delayed design whose look point is that of the tick that first asked for
-it), entries the car has passed are dropped except the one in force, and an entry equal to
-its predecessor in (command, design) is not added. A command below ``stop_speed_mps`` is 0.
+Profile (a periodic unrestricted update at the camera rate, offset 3T/4 by default): with a
+join table, the road between the previous decision's look point q and this one's p, which no
+frame showed, gets from q on the join of the two designs (the design of the hull of their
+label ranges: it holds the stiffness wherever in (q, p) a boundary lies, given segments
+longer than that gap); a decision at position p supersedes the entries at positions >= p (a
+newer decision about the same stretch of road, e.g. a dwell-delayed design whose look point is
+that of the tick that first asked for it), entries the car has passed are dropped except the
+one in force, and an entry equal to its predecessor in (command, design) is not added. A
+command below ``stop_speed_mps`` is 0.
 
 Speed reference at x (the braking envelope, a = ``envelope_decel_fraction`` * a_dec):
   ``v_ref(x) = min(c(x), min_{p_i > x} sqrt(c_i^2 + 2 a max(p_i - m - x, 0)))``
@@ -42,6 +46,7 @@ must exceed the braking distance plus the perception latency times the speed).
 
 import dataclasses
 import math
+from collections.abc import Callable
 
 import pydrake.symbolic as sym
 from pydrake.common.value import AbstractValue
@@ -63,6 +68,7 @@ class SpeedProfile:
 
     entries: tuple[tuple[float, float, int], ...]
     last_decision_time_s: float = -math.inf
+    last_look_m: float = -math.inf  # look point of the last decision taken in (m)
 
     def in_force(self, arc_length_m: float) -> tuple[float, int]:
         """(command, design) of the latest entry with position <= x."""
@@ -74,14 +80,29 @@ class SpeedProfile:
         return command, design
 
     def with_decision(self, position_m: float, command_mps: float, design_index: int,
-                      time_s: float, arc_length_m: float) -> "SpeedProfile":
-        """The profile after one decision (see the module docstring for the rules)."""
+                      time_s: float, arc_length_m: float,
+                      join: Callable[[int, int], tuple[float, int]] | None = None
+                      ) -> "SpeedProfile":
+        """The profile after one decision (see the module docstring for the rules).
+
+        ``join(d_prev, d_new)``: the (command, design) that holds both designs' stiffness; when
+        given, the road between the previous look point and this one (which no frame showed:
+        a condition boundary may lie anywhere in it) gets the join of the designs on either
+        side, from the previous look point on.
+        """
         kept = [e for e in self.entries if e[0] < position_m]  # the -inf entry always stays
+        q = self.last_look_m
+        if join is not None and math.isfinite(q) and q < position_m:
+            before = SpeedProfile(tuple(kept)).in_force(q)[1]
+            gap = join(before, int(design_index))
+            kept = [e for e in kept if e[0] < q]
+            if (kept[-1][1], kept[-1][2]) != gap:
+                kept.append((float(q), float(gap[0]), int(gap[1])))
         passed = [i for i, e in enumerate(kept) if e[0] <= arc_length_m]
         kept = kept[passed[-1]:]  # drop passed entries except the one in force
         if (kept[-1][1], kept[-1][2]) != (command_mps, design_index):
             kept.append((float(position_m), float(command_mps), int(design_index)))
-        return SpeedProfile(tuple(kept), float(time_s))
+        return SpeedProfile(tuple(kept), float(time_s), float(position_m))
 
 
 def speed_reference(entries, arc_length_m: float, *, decel_mps2: float,
@@ -153,7 +174,7 @@ class SpeedPlanner(LeafSystem):
         new = profile.with_decision(float(decision.position_m),
                                     m.speed_command(decision.speed_command_mps),
                                     int(decision.design_index), float(decision.time_s),
-                                    self._state(context)[0])
+                                    self._state(context)[0], m.join_entry)
         state.get_mutable_abstract_state(self._profile).set_value(new)
 
     def _calc_acceleration(self, context, output):
@@ -194,7 +215,9 @@ class LongitudinalMotion(Diagram):
                  initial_design_index: int = 0, stop_speed_mps: float = STOP_SPEED_MPS,
                  rate_hz: float = 10.0, offset_s: float | None = None,
                  braking_margin_m: float = 2.0, envelope_decel_fraction: float = 0.9,
-                 creep_speed_mps: float = 0.1, initial_arc_length_m: float = 0.0):
+                 creep_speed_mps: float = 0.1, initial_arc_length_m: float = 0.0,
+                 join: dict[tuple[int, int], int] | None = None,
+                 design_speeds_mps: list[float] | None = None):
         super().__init__()
         for name, value in (("max_decel_mps2", max_decel_mps2),
                             ("max_accel_mps2", max_accel_mps2),
@@ -219,6 +242,9 @@ class LongitudinalMotion(Diagram):
         self.envelope_decel_mps2 = envelope_decel_fraction * self.max_decel_mps2
         self.braking_margin_m = float(braking_margin_m)
         self.creep_speed_mps = float(creep_speed_mps)
+        if (join is None) != (design_speeds_mps is None):
+            raise ConfigError("longitudinal: join and design_speeds_mps go together")
+        self._join, self._speeds = join, design_speeds_mps
         period = 1.0 / rate_hz
         self.offset_s = 0.75 * period if offset_s is None else float(offset_s)
 
@@ -241,6 +267,15 @@ class LongitudinalMotion(Diagram):
                              "speed_reference_mps")
         builder.BuildInto(self)
         self.set_name("longitudinal_motion")
+
+    @property
+    def join_entry(self) -> Callable[[int, int], tuple[float, int]] | None:
+        """(command, design) of the join of two designs (see :meth:`SpeedProfile.with_decision`),
+        or None when the block was built without a join table."""
+        if self._join is None:
+            return None
+        return lambda a, b: (self.speed_command(self._speeds[self._join[(a, b)]]),
+                             self._join[(a, b)])
 
     def speed_command(self, speed_command_mps: float) -> float:
         """A command below the stop speed (or not finite) means stop: 0."""

@@ -64,9 +64,14 @@ def test_certified_car_stays_in_lane_where_the_base_car_is_fooled_on_snow(under_
     assert base.summary["left_lane"], base.summary
     assert not certified.summary["left_lane"], certified.summary
     assert certified.summary["ending"] == "route end"
-    # Every tick's interval holds the true stiffness of the segment it saw.
+    # Every tick's interval holds the true stiffness of the segment it saw, and at every
+    # instant the design in force holds the stiffness under the car, the car no faster than
+    # its safe speed (the rain -> snow boundary included).
     assert certified.summary["interval_covers_true_fraction"] == 1.0
+    assert certified.summary["time_unprotected_s"] == 0.0
+    assert certified.summary["design_covers_true_fraction"] == 1.0
     assert base.summary["interval_covers_true_fraction"] < 0.5
+    assert base.summary["time_unprotected_s"] > 1.0
 
 
 def test_under_an_efficiency_attack_the_certified_car_keeps_moving(setup):
@@ -110,10 +115,17 @@ def test_the_same_seed_gives_the_same_summary(setup):
 def test_switches_respect_the_dwell_time_and_slower_speeds_come_before_the_segment(under_sa):
     built, result = under_sa["certified"]
     ticks = result.ticks
-    changes = ticks.times_s[1:][np.diff(ticks.design_index) != 0]
+    labels = [tuple(d.labels) for d in built.designs]
+    family = max(labels, key=len)  # the envelope's range: the whole family, friction order
+    span = [(family.index(r[0]), family.index(r[-1])) for r in labels]
+    changes = np.nonzero(np.diff(ticks.design_index) != 0)[0] + 1
     assert len(changes) >= 1
     dwell = built.scenario.controller.dwell_time_s
-    assert np.all(np.diff(changes) >= dwell - 1e-9)
+    for previous, k in zip(changes[:-1], changes[1:], strict=True):
+        old, new = span[ticks.design_index[k - 1]], span[ticks.design_index[k]]
+        widening = new[0] <= old[0] and old[1] <= new[1]  # holds all the old design held
+        if not widening:  # narrowing or moving: at least the dwell after the last switch
+            assert ticks.times_s[k] - ticks.times_s[previous] >= dwell - 1e-9
     # Where the snow starts the car is no faster than the snow design's speed: the command of
     # the snow segment (or a slower, uncertified one) was reached before the segment.
     tape = result.tape

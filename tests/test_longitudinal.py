@@ -140,3 +140,28 @@ def test_invalid_settings_are_config_errors():
         LongitudinalMotion(initial_speed_mps=10.0, max_decel_mps2=0.0)
     with pytest.raises(ConfigError, match="initial_speed_mps"):
         LongitudinalMotion(initial_speed_mps=-1.0)
+
+
+def test_the_unseen_road_between_two_look_points_gets_the_join_of_their_designs():
+    # Designs 0 (sunny, 19 m/s), 1 (snow, 10 m/s), 2 (their join: the envelope, 6 m/s).
+    join = {(0, 0): 0, (1, 1): 1, (2, 2): 2, (0, 1): 2, (1, 0): 2, (0, 2): 2, (2, 0): 2,
+            (1, 2): 2, (2, 1): 2}
+    speeds = [19.0, 10.0, 6.0]
+
+    def entry(a, b):
+        return speeds[join[(a, b)]], join[(a, b)]
+
+    prof = SpeedProfile(((-math.inf, 6.0, 2),))
+    prof = prof.with_decision(40.0, 19.0, 0, 0.1, 0.0, entry)  # the first frame: no gap yet
+    prof = prof.with_decision(41.2, 19.0, 0, 0.2, 1.2, entry)  # sunny again: nothing changes
+    assert prof.entries == ((-math.inf, 6.0, 2), (40.0, 19.0, 0))
+    # The next frame sees snow 1.2 m further: the boundary lies somewhere in (41.2, 42.4], so
+    # from the previous look point on the join holds, then snow from the new look point.
+    prof = prof.with_decision(42.4, 10.0, 1, 0.3, 2.4, entry)
+    assert prof.entries == ((-math.inf, 6.0, 2), (40.0, 19.0, 0), (41.2, 6.0, 2),
+                            (42.4, 10.0, 1))
+    assert prof.in_force(41.0) == (19.0, 0) and prof.in_force(42.0) == (6.0, 2)
+    assert prof.in_force(50.0) == (10.0, 1)
+    # Without a join table the old rule: the new design from its own look point.
+    old = SpeedProfile(((-math.inf, 6.0, 2),)).with_decision(41.2, 19.0, 0, 0.2, 1.2)
+    assert old.with_decision(42.4, 10.0, 1, 0.3, 2.4).in_force(42.0) == (19.0, 0)

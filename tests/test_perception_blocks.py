@@ -166,27 +166,46 @@ def _scripted(label: int, tick: int, position_m: float) -> PerceptionResult:
                             base_label=label, label_index=label, stiffness_n_per_rad=5e4)
 
 
-def test_the_dwell_time_holds_back_a_design_change(conditions, labels, designs):
+def test_the_dwell_time_holds_back_a_narrowing_with_the_join_of_both_in_force(conditions,
+                                                                              labels, designs):
     block = CertifiedInterval(designs, conditions, PRESET, eps=EPS, mode="base",
                               dwell_time_s=0.3)
     context = block.CreateDefaultContext()
     simulator = Simulator(block, context)
     index = {tuple(d.labels): i for i, d in enumerate(designs)}
     sunny, snow = index[("sunny",)], index[("snow",)]
+    envelope = index[tuple(conditions.preset(PRESET).labels)]  # sunny..snow: the join
     seen = []
-    script = [0, 2, 2, 2, 2]  # sunny at tick 0, then snow from tick 1 on
+    script = [0, 2, 2, 2, 2, 2]  # sunny at tick 0, then snow from tick 1 on
     for tick, label in enumerate(script):
         block.GetInputPort("perception").FixValue(context, _scripted(label, tick, 40.0 + tick))
         simulator.AdvanceTo(0.1 * tick + 0.06)  # the update at 0.1 k + 0.05
         seen.append(block.GetOutputPort("decision").Eval(context))
     assert seen[0].design_index == sunny and not seen[0].held  # the first switch is free
-    for d in seen[1:3]:  # t = 0.15, 0.25: within 0.3 s of the switch at 0.05
-        assert d.held and d.design_index == sunny and d.requested_design_index == snow
-        assert d.speed_command_mps == min(designs[sunny].speed_mps, designs[snow].speed_mps)
+    # t = 0.15: snow is not a widening of sunny and comes 0.1 s after a switch: held back, and
+    # meanwhile the join (the envelope, holding sunny and snow alike) is in force at once.
+    for d in seen[1:4]:  # t = 0.15, 0.25, 0.35: within 0.3 s of the switch to the join
+        assert d.held and d.design_index == envelope and d.requested_design_index == snow
+        assert d.speed_command_mps == min(designs[envelope].speed_mps, designs[snow].speed_mps)
         assert d.position_m == 41.0  # the look point of the first request
-    assert seen[3].design_index == snow and not seen[3].held  # t = 0.35: dwell elapsed
-    assert seen[3].position_m == 41.0 and seen[3].time_s == pytest.approx(0.35)
-    assert seen[4].design_index == snow and seen[4].position_m == 44.0
+    assert seen[4].design_index == snow and not seen[4].held  # t = 0.45: dwell elapsed
+    assert seen[4].position_m == 41.0 and seen[4].time_s == pytest.approx(0.45)
+    assert seen[5].design_index == snow and seen[5].position_m == 45.0
+
+
+def test_a_widening_applies_at_once_whatever_the_dwell(conditions, labels, designs):
+    block = CertifiedInterval(designs, conditions, PRESET, eps=EPS, mode="base",
+                              dwell_time_s=10.0)
+    context = block.CreateDefaultContext()
+    simulator = Simulator(block, context)
+    envelope = [tuple(d.labels) for d in designs].index(tuple(conditions.preset(PRESET).labels))
+    block.GetInputPort("perception").FixValue(context, _scripted(0, 0, 40.0))
+    simulator.AdvanceTo(0.06)
+    bad = dataclasses.replace(_scripted(0, 1, 41.0), frame_ok=False, error="NaN")
+    block.GetInputPort("perception").FixValue(context, bad)
+    simulator.AdvanceTo(0.16)  # 0.1 s after the switch to sunny, far inside the dwell
+    decision = block.GetOutputPort("decision").Eval(context)
+    assert decision.design_index == envelope and not decision.held
 
 
 def test_a_design_without_safe_speed_commands_a_stop(conditions, labels, designs):
