@@ -48,7 +48,7 @@ from systems.attacker import Attacker
 from systems.camera import CameraSource
 from systems.certified_interval import CertifiedInterval
 from systems.longitudinal import LongitudinalMotion
-from systems.perception_smoothing import PerceptionSmoothing
+from systems.perception_smoothing import PerceptionSmoothing, check_decision_budget
 from systems.plants import NonlinearLateralPlant, body_state_from_error
 from systems.route import Route, RouteSource
 from systems.scenario import Scenario
@@ -180,6 +180,16 @@ def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable
             "stand still wherever it abstains; synthesize designs for this vehicle that give "
             "the envelope a safe speed")
     return table, envelope
+
+
+def check_perception_budget(scenario: Scenario, conditions: ConditionsTable) -> None:
+    """:class:`ConfigError` when the scenario's sequential decisions could never certify its
+    eps with its n (checked before any model is loaded or any drive starts)."""
+    p = scenario.perception
+    if p.pipeline == "certified" and p.resolved_decision == "sequential":
+        labels = list(conditions.preset(p.preset).labels)
+        check_decision_budget(p.n, p.alpha, p.eps, p.sigma,
+                              candidate_ranges(conditions, p.preset, labels))
 
 
 def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sigma: float):

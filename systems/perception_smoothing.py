@@ -30,6 +30,7 @@ import math
 import torch
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
+from scipy.stats import norm
 
 from drake_cert.certification.classifier import (
     ClassCertificate,
@@ -39,7 +40,7 @@ from drake_cert.certification.classifier import (
 )
 from drake_cert.certification.regressor import MedianSmoothedRegressor
 from drake_cert.certification.sampler import check_frame
-from drake_cert.certification.statistics import percentile_bound_indices
+from drake_cert.certification.statistics import look_plan, percentile_bound_indices
 from drake_cert.errors import CertificationError, ConfigError
 from systems import streams
 from systems.camera import CameraFrame
@@ -76,6 +77,18 @@ class PerceptionResult:
         """The state before the first tick: no frame, handled like a bad frame."""
         return PerceptionResult(time_s=0.0, tick=-1, position_m=0.0, frame_ok=False,
                                 error="no frame yet", mode=mode, task=task)
+
+
+def check_decision_budget(n: int, alpha: float, eps: float, sigma: float, ranges) -> None:
+    """:class:`ConfigError` when n samples can never certify radius eps in a sequential
+    decision over these candidate ranges (None: one label), so that such a setting fails at
+    once instead of abstaining on every tick."""
+    listed = list(ranges) if ranges is not None else [(0,)]
+    tests = len({t for c in listed for t in c}) + sum(len(c) > 1 for c in listed)
+    try:
+        look_plan(int(n), float(alpha), tests, threshold=float(norm.cdf(eps / sigma)))
+    except CertificationError as e:
+        raise ConfigError(f"perception: {e}") from None
 
 
 def _holding(ranges):
@@ -142,6 +155,8 @@ class PerceptionSmoothing(LeafSystem):
                     raise ConfigError("perception: classification needs label_names (>= 2)")
                 if self.decision == "fixed":
                     check_enough_samples(self.n, self.alpha, len(self.label_names))
+                else:
+                    check_decision_budget(self.n, self.alpha, self.eps, sigma, ranges)
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
                                                   compile=compile)
             else:

@@ -96,3 +96,18 @@ def test_a_table_whose_envelope_has_no_safe_speed_is_refused_not_driven(designs,
                  str(path)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no safe speed for the envelope" in err[0]
+
+
+def test_a_sample_budget_that_can_never_certify_eps_is_refused_before_driving(designs, tmp_path,
+                                                                             capsys):
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "drake_cert" / "data" / "scenarios"
+    text = (shipped / "dry_to_snow.yaml").read_text()
+    wide = tmp_path / "wide.yaml"  # eps/sigma = 3 needs thousands of unanimous samples
+    wide.write_text(text.replace("\n  eps: 1.0  # L2 budget (pixel units) the run-time",
+                                 "\n  eps: 3.0  # L2 budget (pixel units) the run-time"))
+    assert main(["drive", "--scenario", str(wide), "--duration", "0.3", "--designs",
+                 designs]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "can never certify" in err[0] and "n_max = 300" in err[0]

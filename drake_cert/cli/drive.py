@@ -140,9 +140,11 @@ def run(args) -> int:
         seed, seed_source = entropy_seed(), "os-entropy"
         choices = [dict(c, seed=seed) for c in choices]
     common = _setup(args)
-    from systems.driving import moving_envelope
+    from systems.driving import check_perception_budget, moving_envelope
 
     moving_envelope(common["designs"], common["conditions"], first.perception.preset)
+    for choice in choices:
+        check_perception_budget(_scenario_for(**choice), common["conditions"])
     if len(choices) == 1:
         results = [_drive_with_bar(choices[0], common, position=0)]
     else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
