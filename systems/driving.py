@@ -182,6 +182,28 @@ def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable
     return table, envelope
 
 
+def check_route_is_seen(scenario: Scenario, table: list[ControllerDesign]) -> None:
+    """:class:`ConfigError` when a stretch of one road condition (consecutive segments with
+    the same condition; the first, driven under the envelope before any frame, excepted) is
+    shorter than the road the car can cover between two frames at the table's top speed: no
+    frame might show it, and the join of the designs on either side of it would not hold it."""
+    top = max((float(d.speed_mps) for d in table if d.has_safe_speed), default=0.0)
+    gap = top / scenario.camera.rate_hz
+    runs: list[list] = []  # [condition, length, index of the first segment]
+    for i, seg in enumerate(scenario.route):
+        if runs and runs[-1][0] == seg.condition:
+            runs[-1][1] += seg.length_m
+        else:
+            runs.append([seg.condition, seg.length_m, i])
+    for condition, length, first in runs[1:]:
+        if length <= gap:
+            raise ConfigError(
+                f"route segment {first} ({condition}, {length:g} m of that condition) is not "
+                f"longer than the {gap:.2f} m the car can drive between two frames "
+                f"({top:.2f} m/s at {scenario.camera.rate_hz:g} Hz): no frame might show it; "
+                "lengthen it or raise camera.rate_hz")
+
+
 def check_perception_budget(scenario: Scenario, conditions: ConditionsTable) -> None:
     """:class:`ConfigError` when the scenario's sequential decisions could never certify its
     eps with its n (checked before any model is loaded or any drive starts)."""
@@ -235,6 +257,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
                           " the gradient law is available in `drake-cert simulate`")
     certified = p.pipeline == "certified"
     table, envelope = moving_envelope(designs, conditions, p.preset)
+    check_route_is_seen(scenario, table)
     route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma

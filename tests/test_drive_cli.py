@@ -111,3 +111,21 @@ def test_a_sample_budget_that_can_never_certify_eps_is_refused_before_driving(de
                  designs]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "can never certify" in err[0] and "n_max = 300" in err[0]
+
+
+def test_a_condition_stretch_shorter_than_the_road_between_two_frames_is_refused(designs,
+                                                                                 tmp_path,
+                                                                                 capsys):
+    from pathlib import Path
+
+    shipped = Path(__file__).resolve().parents[1] / "drake_cert" / "data" / "scenarios"
+    text = (shipped / "dry_to_snow.yaml").read_text()
+    patch = "  - {length_m: 3.0, curvature_per_m: 0.0, condition: snow}\n"
+    rain = "  - {length_m: 30.0, curvature_per_m: 0.0, condition: rain}"
+    assert rain in text
+    short = tmp_path / "patch.yaml"  # 3 m of snow between sunny and rain, camera at 5 Hz
+    short.write_text(text.replace(rain, patch + rain))
+    assert main(["drive", "--scenario", str(short), "--duration", "0.3", "--designs",
+                 designs]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "route segment 3 (snow, 3 m" in err[0] and "5 Hz" in err[0]
