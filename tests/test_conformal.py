@@ -21,10 +21,10 @@ from drake_cert.certification.conformal import (
     RobustConformalCalibration,
     calibrate_robust_conformal,
     conformal_interval,
-    cp_lower,
     lower_conformal_quantile,
 )
 from drake_cert.certification.intervals import runtime_classification_interval
+from drake_cert.certification.statistics import clopper_pearson_one_sided
 from drake_cert.config import load_conditions
 from drake_cert.errors import CertificationError
 
@@ -141,6 +141,10 @@ def test_threshold_shrinks_with_the_budget_by_the_lipschitz_bound():
     assert cal.label_set([600, 400], 0.5) == (0, 1)
     with pytest.raises(CertificationError, match="counts"):
         cal.label_set([1, 2, 3], 0.0)
+
+
+def cp_lower(k, n, level):
+    return clopper_pearson_one_sided(k, n, level)[0]
 
 
 def test_cp_lower_bound_holds_for_a_known_probability():

@@ -59,31 +59,18 @@ from collections.abc import Callable, Iterable, Sequence
 
 import numpy as np
 import torch
-from scipy.stats import beta as beta_dist
 from scipy.stats import norm
 
 from drake_cert.certification.classifier import ClassCertificate, SmoothedClassifier
 from drake_cert.certification.intervals import StiffnessBounds
 from drake_cert.certification.sampler import make_generator
 from drake_cert.certification.seeds import stream_seed
-from drake_cert.certification.statistics import check_alpha, check_count
+from drake_cert.certification.statistics import check_alpha, check_count, clopper_pearson_one_sided
 from drake_cert.errors import CertificationError
 
 ALPHA_C = 0.008
 BETA_CAL = 0.001
 BETA_TEST = 0.001
-
-
-def cp_lower(k: np.ndarray | int, n: int, level: float) -> np.ndarray:
-    """One-sided Clopper-Pearson lower bound on p from k successes in n at level ``level``."""
-    k = np.asarray(k, dtype=np.float64)
-    return np.where(k > 0, beta_dist.ppf(level, np.maximum(k, 1), n - k + 1), 0.0)
-
-
-def cp_upper(k: np.ndarray | int, n: int, level: float) -> np.ndarray:
-    """One-sided Clopper-Pearson upper bound on p from k successes in n at level ``level``."""
-    k = np.asarray(k, dtype=np.float64)
-    return np.where(k < n, beta_dist.ppf(1 - level, k + 1, np.maximum(n - k, 1)), 1.0)
 
 
 def lower_conformal_quantile(scores: np.ndarray, alpha_c: float) -> float:
@@ -146,7 +133,7 @@ class RobustConformalCalibration:
                 or counts.sum() <= 0:
             raise CertificationError(f"counts {counts!r} must be {self.num_classes} non-negative "
                                      "integers with a positive sum")
-        upper = cp_upper(counts, int(counts.sum()), self.beta_test)
+        upper = clopper_pearson_one_sided(counts, int(counts.sum()), self.beta_test)[1]
         return tuple(int(lab) for lab in range(self.num_classes)
                      if upper[lab] >= self.threshold(lab, eps))
 
@@ -155,7 +142,7 @@ def calibration_scores(true_counts: np.ndarray, n: int, beta_cal: float = BETA_C
     """``r_i = CPlow(k_i; n, beta_cal)``: lower bounds on ``p_{y_i}(x_i)`` from k_i votes."""
     check_alpha(beta_cal, "beta_cal")
     check_count(n, "n")
-    return cp_lower(np.asarray(true_counts), n, beta_cal)
+    return clopper_pearson_one_sided(np.asarray(true_counts), n, beta_cal)[0]
 
 
 def thresholds_from_scores(scores: np.ndarray, labels: np.ndarray, num_classes: int,

@@ -109,8 +109,13 @@ def runtime_classification_interval(certificate: ClassCertificate, table, preset
 
 
 def _preference(cert: RuntimeCertificate) -> tuple[float, float, int]:
+    return _preference_key(cert.stiffness_lo_n_per_rad, cert.stiffness_hi_n_per_rad,
+                           len(cert.labels))
+
+
+def _preference_key(lo: float, hi: float, labels: int) -> tuple[float, float, int]:
     """Narrowest hull first; ties: the lower C_lo, then the fewer labels (equal hulls)."""
-    return (cert.width_n_per_rad, cert.stiffness_lo_n_per_rad, len(cert.labels))
+    return (hi - lo, lo, labels)
 
 
 def candidate_ranges(table, preset: str,
@@ -131,7 +136,8 @@ def candidate_ranges(table, preset: str,
             raise CertificationError(f"preset {preset!r} label {rng} not among the classifier's "
                                      f"labels {names}")
         lo, hi = table.hull(rng)
-        ranked.append(((hi - lo, lo, len(rng)), tuple(sorted(index[name] for name in rng))))
+        ranked.append((_preference_key(lo, hi, len(rng)),
+                       tuple(sorted(index[name] for name in rng))))
     return [members for _, members in sorted(ranked)]
 
 

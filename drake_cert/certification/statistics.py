@@ -139,20 +139,22 @@ class LookPlan:
         ``low`` at ``level`` (0 at a look that may not certify); ``up`` at
         ``futility_level``, used only to give up (a lower level gives up less often; no
         choice of it can make a certificate unsound)."""
+        up = (beta_mixture_bounds(successes, trials, self.futility_level)[1]
+              if self.bound == "mixture" else
+              float(clopper_pearson_one_sided(successes, trials, self.futility_level)[1]))
+        return (self._low(successes, trials) if trials >= self.certify_from else 0.0), up
+
+    def _low(self, successes: int, trials: int) -> float:
         if self.bound == "mixture":
-            low = beta_mixture_bounds(successes, trials, self.level)[0]
-            up = beta_mixture_bounds(successes, trials, self.futility_level)[1]
-        else:
-            low = float(clopper_pearson_one_sided(successes, trials, self.level)[0])
-            up = float(clopper_pearson_one_sided(successes, trials, self.futility_level)[1])
-        return (low if trials >= self.certify_from else 0.0), up
+            return beta_mixture_bounds(successes, trials, self.level)[0]
+        return float(clopper_pearson_one_sided(successes, trials, self.level)[0])
 
     def reachable_low(self, up: float) -> float:
         """The lower bound the last look would give if the mean were ``up`` (successes
         ``up * n_max``, rounded down): a question whose reachable bounds cannot certify is
         given up (futility: it never makes a certificate unsound, only an abstention)."""
         n = self.looks[-1]
-        return self.bounds(math.floor(up * n), n)[0]
+        return self._low(math.floor(up * n), n)
 
     @property
     def name(self) -> str:

@@ -14,7 +14,6 @@ from collections.abc import Callable, Iterable
 
 import numpy as np
 import torch
-from scipy.stats import beta as beta_dist
 
 from drake_cert.certification.attacks import AttackSettings, attack
 from drake_cert.certification.classifier import SmoothedClassifier, check_enough_samples
@@ -27,12 +26,15 @@ from drake_cert.certification.conformal import (
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
 from drake_cert.certification.sampler import (
-    PRECISION_SETTINGS,
     resolve_precision,
     with_precision,
 )
 from drake_cert.certification.seeds import stream_seed, streams
-from drake_cert.certification.statistics import min_calibration_frames, percentile_bound_indices
+from drake_cert.certification.statistics import (
+    clopper_pearson_one_sided,
+    min_calibration_frames,
+    percentile_bound_indices,
+)
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import CertificationError
 
@@ -69,10 +71,7 @@ class CertifySettings:
     precision: str = "auto"  # the model as evaluated everywhere (attack too): fp32 or bf16;
     # "auto" is resolved on construction (sampler.resolve_precision)
 
-    def __post_init__(self):
-        if self.precision not in PRECISION_SETTINGS:
-            raise CertificationError(f"precision {self.precision!r} is not one of "
-                                     f"{', '.join(PRECISION_SETTINGS)}")
+    def __post_init__(self):  # resolve_precision names a bad value in CertificationError
         object.__setattr__(self, "precision", resolve_precision(self.precision))
 
     def validate(self) -> None:
@@ -257,12 +256,8 @@ def calibrate_classifier(smooth: SmoothedClassifier, calibration: tuple,
 def clopper_pearson_interval(successes: int, trials: int,
                              level: float = 0.95) -> tuple[float, float]:
     """Two-sided Clopper-Pearson confidence interval of a share (e.g. a measured coverage)."""
-    a = 1 - level
-    lo = 0.0 if successes == 0 else float(beta_dist.ppf(a / 2, successes,
-                                                         trials - successes + 1))
-    hi = 1.0 if successes == trials else float(beta_dist.ppf(1 - a / 2, successes + 1,
-                                                             trials - successes))
-    return lo, hi
+    lo, hi = clopper_pearson_one_sided(successes, trials, (1 - level) / 2)
+    return float(lo), float(hi)
 
 
 def summarize_conformal(records: list[dict], robust) -> dict:
