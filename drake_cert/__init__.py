@@ -33,6 +33,7 @@ _PUBLIC = {
     "ControllerDesign": "synthesis.design",
     "load_design_file": "synthesis.design_io",
     "save_design_table": "synthesis.design_io",
+    "common_lyapunov_certificate": "synthesis.switching",
     # systems
     "Road": "systems.road",
     "simulate": "systems.closed_loop",

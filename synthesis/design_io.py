@@ -8,6 +8,12 @@ A design table file (``drake-cert synthesize --out``)::
     settings: {...}       # Settings used (controller and synthesis)
     conditions: {...}     # ConditionsTable used (optional)
     designs: [ {labels, stiffness_lo_n_per_rad, ..., k_m: [4 numbers], ..., margins: {...}} ]
+    switching: [ {family, method, designs_covered, decay_rate_per_s, dwell_time_s, ...} ]
+                          # optional: synthesis.switching certificates, one per preset
+
+The ``switching`` section is table-level and optional (files written before it load; verify
+then notes its absence). It is not part of any design, so the reproduction's run identity,
+which hashes the designs only, does not depend on it.
 
 A single-design file has ``design: {...}`` instead of ``designs``. Loading checks every key
 and value and raises :class:`DesignFormatError` naming the file and the offending key.
@@ -29,10 +35,11 @@ from drake_cert.config import (
 from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
 from synthesis.design import ControllerDesign
+from synthesis.switching import SwitchingCertificate, certificate_from_dict, certificate_to_dict
 
 DESIGN_SCHEMA_VERSION = 2  # 2: tire_slip_bound, certified_law; Fiala grip rule
 TOP_KEYS_REQUIRED = ("schema_version", "provenance", "vehicle", "settings")
-TOP_KEYS_OPTIONAL = ("conditions", "designs", "design")
+TOP_KEYS_OPTIONAL = ("conditions", "designs", "design", "switching")
 
 
 @dataclasses.dataclass
@@ -44,6 +51,8 @@ class DesignTable:
     settings: Settings
     provenance: dict
     conditions: ConditionsTable | None = None
+    # switching certificates (synthesis.switching), one per family; None: not computed
+    switching: tuple[SwitchingCertificate, ...] | None = None
 
 
 def design_to_dict(design: ControllerDesign) -> dict:
@@ -81,11 +90,37 @@ def dump_design_table(table: DesignTable, single: bool = False) -> str:
         data["design"] = design_to_dict(table.designs[0])
     else:
         data["designs"] = [design_to_dict(d) for d in table.designs]
+        if table.switching is not None:
+            data["switching"] = [certificate_to_dict(c) for c in table.switching]
     return yaml.safe_dump(data, sort_keys=False, default_flow_style=None, width=100)
 
 
-def save_design_table(path: str | Path, table: DesignTable, single: bool = False) -> Path:
-    """Write the table (or its single design) to ``path`` atomically."""
+def with_switching_certificates(table: DesignTable) -> DesignTable:
+    """The table with its ``switching`` section computed from its own vehicle, settings,
+    designs and conditions (:func:`synthesis.switching.table_switching_certificates`: one
+    certificate per preset, or one for all designs without conditions; a few seconds)."""
+    from synthesis.switching import table_switching_certificates
+
+    certificates = table_switching_certificates(table.vehicle, table.designs, table.settings,
+                                                table.conditions)
+    return dataclasses.replace(table, switching=certificates)
+
+
+def save_design_table(path: str | Path, table: DesignTable, single: bool = False,
+                      switching: str | bool = "auto") -> Path:
+    """Write the table (or its single design) to ``path`` atomically.
+
+    ``switching``: whether to compute the switching certificates of a table that has none
+    (:func:`with_switching_certificates`) before writing: ``"auto"`` (the default) when the
+    table embeds its conditions, as ``drake-cert synthesize`` writes it; True always; False
+    never. A table that already holds certificates is written as it is (a changed design
+    list with old certificates fails verify), and a single-design file holds none.
+    """
+    if switching not in ("auto", True, False):
+        raise ValueError(f"switching = {switching!r} must be 'auto', True or False")
+    if (not single and table.switching is None
+            and (switching is True or (switching == "auto" and table.conditions is not None))):
+        table = with_switching_certificates(table)
     return atomic_write_text(path, dump_design_table(table, single))
 
 
@@ -143,7 +178,19 @@ def parse_design_table(raw, where: str) -> DesignTable:
             raise DesignFormatError(f"{where}: designs must be a non-empty list")
     designs = [design_from_dict(e, f"{where}: {key}" + ("" if key == "design" else f"[{i}]"))
                for i, e in enumerate(entries)]
-    return DesignTable(designs, vehicle, settings, dict(raw["provenance"]), conditions)
+    switching = None
+    if "switching" in raw:
+        if "design" in raw:
+            raise DesignFormatError(f"{where}: a single-design file holds no switching section")
+        if not isinstance(raw["switching"], list):
+            raise DesignFormatError(f"{where}: switching must be a list of certificates")
+        try:
+            switching = tuple(certificate_from_dict(c, f"{where}: switching[{i}]")
+                              for i, c in enumerate(raw["switching"]))
+        except ValueError as e:
+            raise DesignFormatError(str(e)) from None
+    return DesignTable(designs, vehicle, settings, dict(raw["provenance"]), conditions,
+                       switching)
 
 
 _FLOAT_FIELDS = ("stiffness_lo_n_per_rad", "stiffness_hi_n_per_rad",

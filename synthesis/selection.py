@@ -63,6 +63,28 @@ def join_design_indices(designs: Sequence[ControllerDesign], conditions: Conditi
     return join
 
 
+def meet_design_indices(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                        preset: str) -> dict[tuple[int, int], int]:
+    """For every pair (i, j) of the preset's designs, the index of the design whose label range
+    is the intersection of both ranges (a stiffness both designs hold lies in it); the
+    envelope's design when they do not intersect (two certificates that contradict each other:
+    one of them failed, and only the envelope is safe). ``designs`` as :func:`preset_designs`
+    returns them."""
+    family = list(conditions.preset(preset).labels)
+    envelope = design_index_for_labels(designs, family)
+    span = []
+    for d in designs:
+        places = [family.index(label) for label in d.labels]
+        span.append((min(places), max(places)))
+    meet = {}
+    for i, (a_lo, a_hi) in enumerate(span):
+        for j, (b_lo, b_hi) in enumerate(span):
+            lo, hi = max(a_lo, b_lo), min(a_hi, b_hi)
+            meet[(i, j)] = (design_index_for_labels(designs, family[lo:hi + 1]) if lo <= hi
+                            else envelope)
+    return meet
+
+
 def narrowest_containing_design_index(designs: Sequence[ControllerDesign],
                                       interval: tuple[float, float]) -> int | None:
     """Index of the narrowest design whose stiffness interval contains ``interval`` (N/rad);

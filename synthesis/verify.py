@@ -17,6 +17,11 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
   of its grip inverted through the Fiala force by bisection; the certified interval's lower
   end recomputed as the Fiala force over ``C tan a`` at the slip bound. Every condition is
   checked on that certified (tire-widened) interval.
+* ``switching`` (table level): the stored switching certificates (``synthesis.switching``)
+  rechecked by generalized eigenvalues of the stored Lyapunov matrices at every corner of
+  every covered design's box (no solver), and that they cover every design with a safe speed
+  of every preset. A table without certificates (written before they existed) passes with a
+  note in ``report.notes``, or fails with ``require_switching=True``.
 * consistency: ``speed <= gain_speed_max``, ``0 < k <= k_bar``, ``C_hat`` the midpoint, and
   (when the file holds the conditions) interval = hull and mu_lo = least friction of the labels;
   stored margins may not overstate the recomputed ones.
@@ -34,6 +39,7 @@ from drake_cert.config import GRAVITY_MPS2, ConditionsTable, Settings, VehiclePa
 from drake_cert.dynamics import lateral_error_dynamics
 from synthesis.design import ControllerDesign
 from synthesis.design_io import DesignTable
+from synthesis.switching import check_table_switching
 
 CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
                    "steady_state_offset", "grip")
@@ -42,6 +48,10 @@ NO_SAFE_SPEED_CLAIM = "no_safe_speed_claim"
 MARGIN_CLAIM = "margin_claim"
 INPUT_MISMATCH = "reference_inputs"  # embedded vehicle/settings/conditions differ from the given
 GAIN_LMI = "gain_lmi"
+SWITCHING = "switching"  # the table's switching certificates
+NO_SWITCHING_NOTE = ("the file holds no switching certificate (written before them, or "
+                     "with switching=False): switching among its designs is not certified; "
+                     "re-run drake-cert synthesize --out to add one")
 
 DENSE_STIFFNESS_POINTS = 21
 DENSE_SPEED_POINTS = 41
@@ -78,22 +88,30 @@ class VerificationReport:
     designs: list[DesignVerification]
     input_failures: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     checked_against: str = "embedded"
+    # (SWITCHING, message) for each failure of the table's switching certificates
+    switching_failures: list[tuple[str, str]] = dataclasses.field(default_factory=list)
+    notes: list[str] = dataclasses.field(default_factory=list)  # not failures (e.g. no
+    # switching certificate in an old file)
 
     @property
     def ok(self) -> bool:
-        return not self.input_failures and all(d.ok for d in self.designs)
+        return (not self.input_failures and all(d.ok for d in self.designs)
+                and not self.switching_failures)
 
     @property
     def first_failure(self):
         """``(design index, labels, condition, message)`` of the first failure, or None.
 
-        A mismatch of the embedded inputs comes first, with index ``None``.
+        A mismatch of the embedded inputs comes first, with index ``None``; a failure of the
+        switching certificates (table level, index ``None``) comes after the designs'.
         """
         if self.input_failures:
             return (None, [], *self.input_failures[0])
         for d in self.designs:
             if d.failures:
                 return (d.index, d.labels, *d.failures[0])
+        if self.switching_failures:
+            return (None, [], *self.switching_failures[0])
         return None
 
 
@@ -590,8 +608,14 @@ def reference_input_failures(table: DesignTable, vehicle: VehicleParams | None =
 
 def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehicleParams | None = None,
                         settings: Settings | None = None,
-                        conditions: ConditionsTable | None = None) -> VerificationReport:
+                        conditions: ConditionsTable | None = None,
+                        require_switching: bool = False) -> VerificationReport:
     """Verify every design of a loaded file; ``progress(i, n)`` is called per design.
+
+    The table's switching certificates, when present, are rechecked
+    (:func:`synthesis.switching.check_table_switching`, failures named ``switching``). A table
+    with at most one design with a safe speed needs none; otherwise a missing section is a
+    note (``report.notes``), or a failure with ``require_switching``.
 
     Reference inputs (``vehicle``, ``settings``, ``conditions``), when given, must equal the
     copies the file embeds (else :data:`INPUT_MISMATCH` failures naming the field), and every
@@ -609,4 +633,14 @@ def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehiclePa
         if progress is not None:
             progress(i, len(table.designs))
         out.append(verify_design(design, vehicle, settings, conditions, i))
-    return VerificationReport(out, input_failures, ", ".join(given) or "embedded")
+    switching_failures, notes = [], []
+    if table.switching is not None:
+        switching_failures = [(SWITCHING, m) for m in check_table_switching(
+            vehicle, table.designs, settings, conditions, table.switching)]
+    elif sum(d.has_safe_speed for d in table.designs) > 1:
+        if require_switching:
+            switching_failures.append((SWITCHING, NO_SWITCHING_NOTE))
+        else:
+            notes.append(NO_SWITCHING_NOTE)
+    return VerificationReport(out, input_failures, ", ".join(given) or "embedded",
+                              switching_failures, notes)

@@ -71,6 +71,7 @@ class Decision:
     held: bool = False  # a request for another design is held back by the dwell time
     frame_ok: bool = False  # perception had a good frame
     error: str = ""  # perception's reason for a bad frame
+    look_m: float = math.nan  # look point of the frame behind it (m); nan: none yet
 
     @property
     def status_code(self) -> int:
@@ -207,7 +208,8 @@ class CertifiedInterval(LeafSystem):
                         speed_command_mps=_speed(d), status=status, radius=float(radius),
                         labels=tuple(d.labels), true_stiffness_n_per_rad=p.stiffness_n_per_rad,
                         true_label_index=p.label_index, tick=p.tick,
-                        requested_design_index=index, frame_ok=p.frame_ok, error=p.error)
+                        requested_design_index=index, frame_ok=p.frame_ok, error=p.error,
+                        look_m=float(p.position_m))
 
     def envelope_decision(self, p: PerceptionResult) -> Decision:
         """The family envelope and its design (abstain, bad frame, nothing certified)."""
@@ -315,7 +317,7 @@ class CertifiedInterval(LeafSystem):
             true_stiffness_n_per_rad=req.true_stiffness_n_per_rad,
             true_label_index=req.true_label_index, tick=req.tick,
             requested_design_index=req.design_index, held=True, frame_ok=req.frame_ok,
-            error=req.error)
+            error=req.error, look_m=req.look_m)
         switched = state.switched_at_s if join == cur.design_index else t
         return _DwellState(held, switched, pending)
 

@@ -17,8 +17,28 @@ curvature feedforward is taken (:mod:`systems.l1_law`, "Road preview").
 Timing per camera tick k (period T, t_k = k T): the camera takes a frame at t_k, perception
 certifies it at t_k + T/4, the interval block decides at t_k + T/2 (perception latency T/2),
 the longitudinal block takes the decision into its speed/design profile at t_k + 3T/4. The
-decision applies from the look-ahead point the frame showed; the car reaches a slower command
-before that point and the controller switches to the point's design when the car gets there.
+modelled latency T/4 of perception is a requirement on the hardware, not a measurement: it
+must draw ``n0 + n`` noisy samples in T/4 (the drive reports ``samples_per_s_required``; the
+wall-clock figures of a drive on a shared CPU are not that hardware).
+
+Where a decision applies (``systems.longitudinal``): the car starts ``look_ahead_m`` before the
+route (a lead-in of the first segment's road, under the envelope design), so the first frame
+shows the route's start; every decision speaks for its look point. The certified pipeline
+combines its decisions: two look points closer than ``min_condition_length_m`` (no interior
+stretch of one condition on the route is shorter; checked before driving) have at most one
+boundary between them, so the hull of their certified label ranges holds on all the road
+between them, and each stretch gets the intersection of those hulls over the pairs around it
+(an abstention between two certified frames costs nothing; certificates that contradict each
+other give the envelope). The base pipeline's raw predictions each stand alone (the join of
+neighbours over the unseen gap between two frames). The car always keeps able to brake to
+the slowest command before the last look point (the frontier); ``check_look_ahead`` refuses a
+camera whose look-ahead cannot carry the table's top speed that way.
+
+Switching: the controller switches where the design in force changes along the road; a wider
+(safer) design is never held back. ``synthesis.switching`` certifies the switched reference
+loops of the preset's designs (a common Lyapunov matrix, or an average dwell time with per-
+design matrices); each drive reports the certificate and its switching signal's chatter bound
+(``chatter_bound_n0``, ``lyapunov_growth_bound``).
 
 The non-robust baseline is the same Diagram with ``pipeline="base"``: the raw prediction of
 the base model f, the predicted label's own interval and design, attacked by PGD on f.
@@ -42,12 +62,24 @@ from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
-from synthesis.selection import envelope_design_index, join_design_indices, preset_designs
+from synthesis.selection import (
+    envelope_design_index,
+    join_design_indices,
+    meet_design_indices,
+    preset_designs,
+)
 from systems import streams
 from systems.attacker import Attacker
 from systems.camera import CameraSource
 from systems.certified_interval import CertifiedInterval
-from systems.longitudinal import LongitudinalMotion
+from systems.longitudinal import (
+    BRAKING_MARGIN_M,
+    ENVELOPE_DECEL_FRACTION,
+    LongitudinalMotion,
+    frontier_latency_s,
+    look_ahead_needed_m,
+    supported_speed_mps,
+)
 from systems.perception_smoothing import PerceptionSmoothing, check_decision_budget
 from systems.plants import NonlinearLateralPlant, body_state_from_error
 from systems.route import Route, RouteSource
@@ -109,6 +141,10 @@ class DrivingDiagram:
     initial_speed_mps: float
     vehicle: VehicleParams
     seed_source: str = "scenario"  # "scenario" or "os-entropy" (the scenario's seed was null)
+    switching: object = None  # the preset's synthesis.switching.SwitchingCertificate
+    lead_in_m: float = 0.0  # the car starts this far before the route (m): the first frame
+    # shows the route's start; the lead-in has the first segment's road and is driven under the
+    # envelope design before any decision
 
 
 def entropy_seed() -> int:
@@ -182,26 +218,72 @@ def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable
     return table, envelope
 
 
+def _speeds(table: list[ControllerDesign]) -> list[float]:
+    return [float(d.speed_mps) if d.has_safe_speed else 0.0 for d in table]
+
+
+def slowest_command_mps(table: list[ControllerDesign], stop_speed_mps: float) -> float:
+    """The slowest speed command (m/s) a decision can give with these designs (0: stop; a
+    design speed below the stop speed means stop): the speed the car brakes for at the
+    frontier of the road it has decisions for."""
+    slowest = min(_speeds(table))
+    return slowest if slowest >= stop_speed_mps else 0.0
+
+
 def check_route_is_seen(scenario: Scenario, table: list[ControllerDesign]) -> None:
-    """:class:`ConfigError` when a stretch of one road condition (consecutive segments with
-    the same condition; the first, driven under the envelope before any frame, excepted) is
-    shorter than the road the car can cover between two frames at the table's top speed: no
-    frame might show it, and the join of the designs on either side of it would not hold it."""
-    top = max((float(d.speed_mps) for d in table if d.has_safe_speed), default=0.0)
+    """:class:`ConfigError` when the route breaks the car's assumption that no stretch of one
+    road condition (consecutive segments with the same condition) is as short as
+    ``min_condition_length_m`` (the first and the last stretch excepted: they extend before the
+    route's start and past its end), or when that length is not longer than the road the car
+    can cover between two frames at the table's top speed: the join of the designs on either
+    side of a gap between frames, and the bridge over abstentions, hold only when at most one
+    boundary lies between their look points."""
+    top = max(_speeds(table))
     gap = top / scenario.camera.rate_hz
+    shortest = scenario.min_condition_length_m
+    if shortest <= gap:
+        raise ConfigError(
+            f"min_condition_length_m = {shortest:g} m is not longer than the {gap:.2f} m the car "
+            f"can drive between two frames ({top:.2f} m/s at {scenario.camera.rate_hz:g} Hz): "
+            "raise it or camera.rate_hz")
     runs: list[list] = []  # [condition, length, index of the first segment]
     for i, seg in enumerate(scenario.route):
         if runs and runs[-1][0] == seg.condition:
             runs[-1][1] += seg.length_m
         else:
             runs.append([seg.condition, seg.length_m, i])
-    for condition, length, first in runs[1:]:
-        if length <= gap:
+    for condition, length, first in runs[1:-1]:
+        if length < shortest:
             raise ConfigError(
-                f"route segment {first} ({condition}, {length:g} m of that condition) is not "
-                f"longer than the {gap:.2f} m the car can drive between two frames "
-                f"({top:.2f} m/s at {scenario.camera.rate_hz:g} Hz): no frame might show it; "
-                "lengthen it or raise camera.rate_hz")
+                f"route segment {first} ({condition}, {length:g} m of that condition) is shorter "
+                f"than min_condition_length_m = {shortest:g} m, the shortest stretch of one "
+                "condition the car assumes (it bridges abstentions over shorter spans); "
+                "lengthen it, or lower min_condition_length_m (it must stay above the "
+                f"{gap:.2f} m between two frames)")
+
+
+def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
+    """:class:`ConfigError` when the camera's look-ahead cannot carry the table's top speed:
+    the car must be able to brake to the slowest command before the end of the road it has a
+    decision for (:func:`systems.longitudinal.supported_speed_mps`); names the largest speed
+    the look-ahead supports and the look-ahead the top speed needs."""
+    cam, motion = scenario.camera, scenario.motion
+    decel = ENVELOPE_DECEL_FRACTION * motion.max_decel_mps2
+    floor = slowest_command_mps(table, motion.stop_speed_mps)
+    top_index = max(range(len(table)), key=lambda i: _speeds(table)[i])
+    top = _speeds(table)[top_index]
+    kw = dict(decel_mps2=decel, margin_m=BRAKING_MARGIN_M, floor_speed_mps=floor)
+    supported = supported_speed_mps(cam.look_ahead_m, cam.rate_hz, **kw)
+    if supported < top - 1e-9:
+        needed = look_ahead_needed_m(top, cam.rate_hz, **kw)
+        raise ConfigError(
+            f"camera.look_ahead_m = {cam.look_ahead_m:g} m supports at most {supported:.2f} m/s "
+            f"at {cam.rate_hz:g} Hz (braking at {decel:.2f} m/s^2 to the slowest command, "
+            f"{floor:.2f} m/s, {BRAKING_MARGIN_M:g} m before the end of the road a frame has "
+            f"shown, which stays put for up to {frontier_latency_s(cam.rate_hz):.2f} s), below "
+            f"the design table's top speed {top:.2f} m/s (labels "
+            f"{list(table[top_index].labels)}); raise look_ahead_m to at least {needed:.1f} m "
+            "or raise camera.rate_hz")
 
 
 def check_perception_budget(scenario: Scenario, conditions: ConditionsTable) -> None:
@@ -258,6 +340,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     certified = p.pipeline == "certified"
     table, envelope = moving_envelope(designs, conditions, p.preset)
     check_route_is_seen(scenario, table)
+    check_look_ahead(scenario, table)
     route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma
@@ -281,8 +364,14 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
         initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
         rate_hz=cam.rate_hz, offset_s=0.75 * period,
-        join=join_design_indices(table, conditions, p.preset),
-        design_speeds_mps=[float(d.speed_mps) if d.has_safe_speed else 0.0 for d in table]))
+        join=join_design_indices(table, conditions, p.preset), design_speeds_mps=_speeds(table),
+        frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
+        # the certified pipeline combines its certified decisions over the shortest stretch of
+        # one condition; the base pipeline's raw predictions each stand alone (the baseline)
+        meet=meet_design_indices(table, conditions, p.preset) if certified else None,
+        window_m=scenario.min_condition_length_m if certified else 0.0,
+        envelope_index=envelope,
+        initial_arc_length_m=-cam.look_ahead_m))
     ctl = settings.controller
     preview = ctl.preview_window_s > 0
     road = add("route", RouteSource(route, preview_ahead_s=ctl.preview_ahead_s,
@@ -364,8 +453,12 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     systems_ = dict(motion=motion, route=road, camera=camera, attacker=attacker,
                     perception=perception, interval=interval, controller=controller,
                     saturation=saturation, plant=plant)
+    from synthesis.switching import common_lyapunov_certificate
+
+    switching = common_lyapunov_certificate(vehicle, table, settings, family=p.preset)
     return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
-                          v0, vehicle, seed_source)
+                          v0, vehicle, seed_source, switching=switching,
+                          lead_in_m=float(cam.look_ahead_m))
 
 
 @dataclasses.dataclass
@@ -400,7 +493,7 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
     simulator = Simulator(built.diagram)
     ApplySimulatorConfig(scenario.simulator, simulator)
     context = simulator.get_mutable_context()
-    kappa0 = float(route.curvature_at(0.0))
+    kappa0 = float(route.curvature_at(-built.lead_in_m))
     s0 = np.zeros(4)
     plant.body_state_subsystem().GetMyMutableContextFromRoot(context).SetContinuousState(
         np.asarray(body_state_from_error(s0, built.initial_speed_mps, kappa0), float))
@@ -444,7 +537,14 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
     tape, ticks = _tapes(built, context)
     summary = summarize_drive(tape, ticks, scenario=scenario, route=route,
                               simulated_s=context.get_time(), wall_s=wall,
-                              ending=ending["reason"], seed_source=built.seed_source)
+                              ending=ending["reason"], seed_source=built.seed_source,
+                              envelope_index=built.systems["interval"].envelope_index,
+                              lead_in_m=built.lead_in_m)
+    if built.switching is not None:
+        from synthesis.switching import drive_switching_report
+
+        switches = tape.times_s[1:][np.diff(tape.design_index) != 0]
+        summary.update(drive_switching_report(built.switching, switches))
     return DriveResult(tape, ticks, summary, route, built.vehicle.lane_width_m)
 
 
@@ -521,14 +621,26 @@ def time_left_lane(tape: DriveTape) -> float | None:
 
 def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
                     simulated_s: float, wall_s: float, ending: str,
-                    seed_source: str = "scenario") -> dict:
-    """The ``drive --json`` object (DESIGN 7 metrics of one drive)."""
+                    seed_source: str = "scenario", envelope_index: int | None = None,
+                    lead_in_m: float = 0.0) -> dict:
+    """The ``drive --json`` object (DESIGN 7 metrics of one drive).
+
+    ``mean_speed_mps`` is over the route (arc length >= 0, from the first point a frame
+    showed); the lead-in before it (``lead_in_m``, driven under the envelope design before any
+    decision) counts in every other figure. ``envelope_fraction``: share of camera ticks whose
+    decision is the envelope (an abstention, a bad frame); ``envelope_time_fraction``: share
+    of simulated time the envelope design is in force on the route.
+    """
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
         (ticks.seen_stiffness_n_per_rad <= ticks.interval_n_per_rad[:, 1])
     dt = np.diff(tape.times_s)
-    mean_speed = float(np.sum(tape.speed_mps[:-1] * dt) / np.sum(dt)) if len(dt) else \
-        float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
+    on_route = tape.arc_length_m[:-1] >= 0.0 if len(dt) else np.zeros(0, bool)
+    mean_speed = float(np.sum((tape.speed_mps[:-1] * dt)[on_route]) / np.sum(dt[on_route])) \
+        if np.any(on_route) else float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
+    envelope_time = (float(np.sum(dt[on_route & (tape.design_index[:-1] == envelope_index)])
+                           / np.sum(dt[on_route]))
+                     if envelope_index is not None and np.any(on_route) else None)
     peak = float(np.max(np.abs(tape.lateral_offset_m))) if len(tape.times_s) else 0.0
     design_covers, unprotected = protection(tape)
     attacked = scenario.attack.kind in ("sa", "ea")
@@ -557,8 +669,16 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "attack_within_certified_budget": (not attacked
                                            or scenario.attack.eps <= scenario.perception.eps),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
+        "envelope_time_fraction": envelope_time,
+        "lead_in_m": float(lead_in_m),
         "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
         "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,
+        "max_samples_per_tick": int(np.max(ticks.samples)) if len(ticks.samples) else 0,
+        # the modelled perception latency T/4 holds on hardware that draws the most samples a
+        # tick may take (n0 + n) in T/4
+        "samples_per_s_required": (
+            (scenario.perception.n0 + scenario.perception.n) * 4.0 * scenario.camera.rate_hz
+            if scenario.perception.pipeline == "certified" else 0.0),
         "seed": scenario.seed,
         "seed_source": seed_source,
         "precision": resolve_precision(scenario.perception.precision),

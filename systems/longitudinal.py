@@ -3,7 +3,9 @@
 Input port:
   ``decision``             abstract; any object with ``position_m`` (the look point from which
                            it applies, m of arc length), ``speed_command_mps`` (0 = stop),
-                           ``design_index`` and ``time_s`` (``systems.certified_interval.Decision``)
+                           ``design_index``, ``time_s`` and optionally ``look_m`` (the look
+                           point of the frame behind it; default ``position_m``)
+                           (``systems.certified_interval.Decision``)
 Continuous state:         ``[x, v]``: arc length along the route (m) and forward speed (m/s)
                            (in a C++ ``SymbolicVectorSystem``, as deviations from the initial
                            values; ``speed_planner`` computes dv/dt in Python)
@@ -17,21 +19,51 @@ Output ports (size 1):
   ``design_index``         the design of the latest profile entry with position <= x
   ``speed_reference_mps``  v_ref(x) below (m/s)
 
-Profile (a periodic unrestricted update at the camera rate, offset 3T/4 by default): with a
-join table, the road between the previous decision's look point q and this one's p, which no
-frame showed, gets from q on the join of the two designs (the design of the hull of their
-label ranges: it holds the stiffness wherever in (q, p) a boundary lies, given segments
-longer than that gap); a decision at position p supersedes the entries at positions >= p (a
-newer decision about the same stretch of road, e.g. a dwell-delayed design whose look point is
-that of the tick that first asked for it), entries the car has passed are dropped except the
-one in force, and an entry equal to its predecessor in (command, design) is not added. A
-command below ``stop_speed_mps`` is 0.
+Profile (a periodic unrestricted update at the camera rate, offset 3T/4 by default): entries
+the car has passed are dropped except the one in force, an entry equal to its predecessor in
+(command, design) is not added, and a command below ``stop_speed_mps`` is 0. With a join table
+only (each decision on its own), the road between the previous decision's look point q and
+this one's p, which no frame showed, gets from q on the join of the two designs (the design
+of the hull of their label ranges: it holds the stiffness wherever in (q, p) a boundary lies,
+given stretches of one condition longer than that gap), and a decision at position p
+supersedes the entries at positions >= p (e.g. a dwell-released design that applies from the
+look point of the tick that first asked for it).
+
+Decisions combined (``meet`` and ``window_m`` > 0, as the driving Diagram builds it): every
+decision is a statement "the condition at its look point lies in the design's label range"
+(the envelope's: anywhere). Two decisions whose look points a < b are closer than the window
+(the scenario's ``min_condition_length_m``, which no interior stretch of one road condition on
+the route is as short as, checked before driving) have at most one condition boundary between
+them, so every point of [a, b] has the condition of a or of b: the join (hull) of their label
+ranges holds on all of [a, b]. The stretch between two consecutive look points therefore gets
+the intersection (meet) of the joins of every such pair around it; a new decision narrows the
+stretches of the last window and never widens or slows them (of two designs that both hold,
+the faster is kept), and an abstention between two certified
+decisions gets their join instead of the envelope. A decision that contradicts the recent ones
+(its pairs would exclude the range a look point certified: one of the certificates failed,
+which one is unknown) is taken as an abstention: the stretches already decided stand, the new
+stretch gets the envelope (widening a stretch the car may already be on would leave it too
+fast for it). A point's design then rests on the
+certificates of the frames used (failure probability at most their number times alpha, union
+bound; all the drive's certificates hold at once with probability at least 1 - K alpha for K
+frames, and then every design in force holds). The speed command of a stretch is its design's
+safe speed. Without a meet table each decision stands alone: the road between the previous
+look point q and this one p gets the join of their designs from q on, and a decision at p
+supersedes the entries at positions >= p.
 
 Speed reference at x (the braking envelope, a = ``envelope_decel_fraction`` * a_dec):
-  ``v_ref(x) = min(c(x), min_{p_i > x} sqrt(c_i^2 + 2 a max(p_i - m - x, 0)))``
+  ``v_ref(x) = min(c(x), min_{p_i > x} b(c_i, p_i - m - x), b(v_f, f - m - x))``,
+  ``b(c, d) = sqrt(c^2 + 2 a max(d, 0))``,
 with c(x) the command in force at x and m = ``braking_margin_m``: the command of a point ahead
-is reached m metres before it. The envelope keeps (1 - fraction) of the braking authority for
-the tracking law, so the car catches up with it after a late (too close) entry.
+is reached m metres before it. The frontier f is the last look point a decision was taken in
+for; the road beyond it has no decision yet, and the next decision may give the slowest
+command (v_f = ``frontier_speed_mps``, the envelope's) from f on, so the car keeps able to
+reach v_f before f. Between two updates the frontier stays put for at most
+:func:`frontier_latency_s` = (1 + 3/4) T, so a look-ahead L supports the constant speeds with
+``v^2 <= v_f^2 + 2 a (L - m - 1.75 T v)`` (:func:`supported_speed_mps`; the scenario check
+``systems.driving.check_look_ahead`` refuses a camera that cannot carry the table's top speed).
+The envelope keeps (1 - fraction) of the braking authority for the tracking law, so the car
+catches up with it after a late (too close) entry.
 
 Tracking law (feedforward of the reference's rate along the motion plus proportional gain k):
   ``dv/dt = clip(k (v_ref - v - v_creep [v_ref = 0]) + (dv_ref/dx) v, -a_dec, a_acc)``
@@ -40,8 +72,9 @@ On the envelope ``dv_ref/dx = -a / v_env``, so a car on the envelope stays on it
 decelerates at a < a_dec; off it, the error decays at rate k once out of saturation. A stop
 reference aims ``v_creep`` below zero, so the car comes to rest in finite time.
 A late entry (closer than :meth:`LongitudinalMotion.braking_distance_m`) cannot be met: the car
-then brakes at a_dec and reaches the point faster than its command (the scenario's look-ahead
-must exceed the braking distance plus the perception latency times the speed).
+then brakes at a_dec and reaches the point faster than its command. With the frontier no
+decision can be late: every decision's look point lies beyond the frontier the car already
+brakes for, at a command no slower than v_f.
 """
 
 import dataclasses
@@ -56,6 +89,8 @@ from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 from drake_cert.errors import ConfigError
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
+BRAKING_MARGIN_M = 2.0  # a command ahead is reached this far before its point (m)
+ENVELOPE_DECEL_FRACTION = 0.9  # share of the braking authority the braking envelope plans with
 
 
 @dataclasses.dataclass(frozen=True)
@@ -64,11 +99,15 @@ class SpeedProfile:
 
     ``entries``: ``(position_m, speed_command_mps, design_index)`` sorted by position, the
     first at -inf. ``last_decision_time_s``: time of the last decision taken in (-inf if none).
+    ``last_look_m``: the farthest look point of a decision taken in (the frontier: the road
+    beyond it has no decision). ``looks``: ``(look point, design)`` of the decisions that can
+    still pair with the next one (:meth:`with_combined_decision`).
     """
 
     entries: tuple[tuple[float, float, int], ...]
     last_decision_time_s: float = -math.inf
-    last_look_m: float = -math.inf  # look point of the last decision taken in (m)
+    last_look_m: float = -math.inf
+    looks: tuple[tuple[float, int], ...] = ()  # (look point, design) of the recent decisions
 
     def in_force(self, arc_length_m: float) -> tuple[float, int]:
         """(command, design) of the latest entry with position <= x."""
@@ -81,15 +120,18 @@ class SpeedProfile:
 
     def with_decision(self, position_m: float, command_mps: float, design_index: int,
                       time_s: float, arc_length_m: float,
-                      join: Callable[[int, int], tuple[float, int]] | None = None
-                      ) -> "SpeedProfile":
-        """The profile after one decision (see the module docstring for the rules).
+                      join: Callable[[int, int], tuple[float, int]] | None = None, *,
+                      look_m: float | None = None) -> "SpeedProfile":
+        """The profile after one decision, each decision on its own (see the module docstring).
 
         ``join(d_prev, d_new)``: the (command, design) that holds both designs' stiffness; when
         given, the road between the previous look point and this one (which no frame showed:
         a condition boundary may lie anywhere in it) gets the join of the designs on either
-        side, from the previous look point on.
+        side, from the previous look point on. ``look_m``: the look point of the frame behind
+        the decision (default ``position_m``; a dwell-released request applies from the look
+        point of the tick that first asked for it).
         """
+        look = float(position_m if look_m is None else max(look_m, position_m))
         kept = [e for e in self.entries if e[0] < position_m]  # the -inf entry always stays
         q = self.last_look_m
         if join is not None and math.isfinite(q) and q < position_m:
@@ -102,15 +144,78 @@ class SpeedProfile:
         kept = kept[passed[-1]:]  # drop passed entries except the one in force
         if (kept[-1][1], kept[-1][2]) != (command_mps, design_index):
             kept.append((float(position_m), float(command_mps), int(design_index)))
-        return SpeedProfile(tuple(kept), float(time_s), float(position_m))
+        return SpeedProfile(tuple(kept), float(time_s), max(q, look))
+
+    def with_combined_decision(self, look_m: float, design_index: int, time_s: float,
+                               arc_length_m: float, *, window_m: float,
+                               join: dict[tuple[int, int], int],
+                               meet: dict[tuple[int, int], int],
+                               command_of: Callable[[int], float],
+                               envelope_index: int) -> "SpeedProfile":
+        """The profile after one decision, combining it with the decisions of the last
+        ``window_m`` metres (module docstring, "Decisions combined").
+
+        ``join``/``meet``: design index of the hull/intersection of two designs' label ranges
+        (:func:`synthesis.selection.join_design_indices`, ``meet_design_indices``);
+        ``command_of(design)``: its speed command (m/s, 0 = stop).
+        """
+        r, d_r = float(look_m), int(design_index)
+        looks = [lk for lk in self.looks if lk[0] < r]
+        first = next((i for i, lk in enumerate(looks) if lk[0] > r - window_m), len(looks))
+        recent = looks[first:]  # decisions that pair with this one (closer than the window)
+        profile = SpeedProfile(tuple(e for e in self.entries if e[0] < r))
+        stretches = []
+        env, contradiction = int(envelope_index), False
+        for i, (l_i, d_i) in enumerate(recent):
+            pairs = [join[(d_a, d_r)] for _, d_a in recent[:i + 1]]
+            value = pairs[0]
+            for p in pairs[1:]:
+                value = meet[(value, p)]
+            if i < len(recent) - 1:  # an older stretch keeps what earlier pairs gave it
+                before = profile.in_force(l_i)[1]
+                value = meet[(before, value)]
+                if command_of(value) < command_of(before):
+                    value = before  # both hold; a narrower range need not be faster
+            if value != env and d_i != env and meet[(value, d_i)] == env:
+                contradiction = True  # the pairs exclude what this look certified: one failed
+            stretches.append((l_i, value))
+        if contradiction:  # taken as an abstention: the stretches already decided stand
+            return self.with_combined_decision(r, env, time_s, arc_length_m, window_m=window_m,
+                                               join=join, meet=meet, command_of=command_of,
+                                               envelope_index=env)
+        if not recent and looks:  # the previous decision is a window or more back
+            stretches.append((looks[-1][0], envelope_index))
+        start = stretches[0][0] if stretches else r
+        kept = [e for e in self.entries if e[0] < start]
+        for position, value in [*stretches, (r, d_r)]:
+            if (kept[-1][1], kept[-1][2]) != (command_of(value), value):
+                kept.append((float(position), float(command_of(value)), int(value)))
+        passed = [i for i, e in enumerate(kept) if e[0] <= arc_length_m]
+        kept = kept[passed[-1]:]  # drop passed entries except the one in force
+        keep_looks = tuple(lk for lk in looks if lk[0] > r - window_m) + ((r, d_r),)
+        if len(keep_looks) == 1 and looks:
+            keep_looks = (looks[-1], (r, d_r))  # the previous look bounds the next gap
+        return SpeedProfile(tuple(kept), float(time_s), max(self.last_look_m, r),
+                            looks=keep_looks)
 
 
-def speed_reference(entries, arc_length_m: float, *, decel_mps2: float,
-                    margin_m: float) -> tuple[float, float]:
+def _braking_curve(command_mps: float, distance_m: float,
+                   decel_mps2: float) -> tuple[float, float]:
+    """Speed (m/s) and its slope along x of the braking curve that reaches ``command_mps``
+    ``distance_m`` ahead at ``decel_mps2`` (the command itself once the distance is <= 0)."""
+    if distance_m <= 0.0:
+        return command_mps, 0.0
+    speed = math.sqrt(command_mps * command_mps + 2.0 * decel_mps2 * distance_m)
+    return speed, -decel_mps2 / speed
+
+
+def speed_reference(entries, arc_length_m: float, *, decel_mps2: float, margin_m: float,
+                    frontier: tuple[float, float] | None = None) -> tuple[float, float]:
     """``(v_ref, dv_ref/dx)`` at x for a profile's entries (module docstring equation).
 
     ``dv_ref/dx`` is the slope of the active branch (0 on a command, ``-a / v_env`` on a
-    braking envelope), used as the tracking law's feedforward.
+    braking envelope), used as the tracking law's feedforward. ``frontier``: ``(position,
+    command)`` of the end of the road with a decision, braked for like an entry ahead.
     """
     x = arc_length_m
     v_ref, slope = entries[0][1], 0.0
@@ -118,15 +223,42 @@ def speed_reference(entries, arc_length_m: float, *, decel_mps2: float,
         if position <= x:
             v_ref, slope = command, 0.0  # entries are sorted: the last one <= x is in force
             continue
-        distance = position - margin_m - x
-        if distance <= 0.0:
-            envelope, envelope_slope = command, 0.0
-        else:
-            envelope = math.sqrt(command * command + 2.0 * decel_mps2 * distance)
-            envelope_slope = -decel_mps2 / envelope
-        if envelope < v_ref:
-            v_ref, slope = envelope, envelope_slope
+        curve = _braking_curve(command, position - margin_m - x, decel_mps2)
+        if curve[0] < v_ref:
+            v_ref, slope = curve
+    if frontier is not None and math.isfinite(frontier[0]):
+        curve = _braking_curve(frontier[1], frontier[0] - margin_m - x, decel_mps2)
+        if curve[0] < v_ref:
+            v_ref, slope = curve
     return v_ref, slope
+
+
+def frontier_latency_s(rate_hz: float, offset_fraction: float = 0.75) -> float:
+    """Longest time (s) the frontier stays put: one camera period plus the offset at which the
+    profile takes a decision in (the car drives this far on the last frontier)."""
+    return (1.0 + offset_fraction) / rate_hz
+
+
+def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: float,
+                        margin_m: float, floor_speed_mps: float,
+                        offset_fraction: float = 0.75) -> float:
+    """Largest constant speed (m/s) a camera look-ahead supports: the car can still brake at
+    ``decel_mps2`` to ``floor_speed_mps`` (the slowest command) ``margin_m`` before the
+    frontier when the frontier has not moved for :func:`frontier_latency_s`, i.e. the root of
+    ``v^2 = v_f^2 + 2 a (L - m - tau v)``."""
+    a, tau = float(decel_mps2), frontier_latency_s(rate_hz, offset_fraction)
+    c = floor_speed_mps**2 + 2.0 * a * (look_ahead_m - margin_m)
+    if c <= 0.0:
+        return 0.0
+    return max(-a * tau + math.sqrt((a * tau) ** 2 + c), 0.0)
+
+
+def look_ahead_needed_m(speed_mps: float, rate_hz: float, *, decel_mps2: float,
+                        margin_m: float, floor_speed_mps: float,
+                        offset_fraction: float = 0.75) -> float:
+    """The look-ahead (m) that supports ``speed_mps`` (inverse of :func:`supported_speed_mps`)."""
+    return (max(speed_mps**2 - floor_speed_mps**2, 0.0) / (2.0 * decel_mps2) + margin_m
+            + frontier_latency_s(rate_hz, offset_fraction) * speed_mps)
 
 
 class SpeedPlanner(LeafSystem):
@@ -171,23 +303,32 @@ class SpeedPlanner(LeafSystem):
         if float(decision.time_s) <= profile.last_decision_time_s:
             return  # already taken in
         m = self._motion
-        new = profile.with_decision(float(decision.position_m),
-                                    m.speed_command(decision.speed_command_mps),
-                                    int(decision.design_index), float(decision.time_s),
-                                    self._state(context)[0], m.join_entry)
+        look = float(getattr(decision, "look_m", decision.position_m))
+        if not math.isfinite(look):
+            look = float(decision.position_m)
+        x = self._state(context)[0]
+        if m.combines:
+            new = profile.with_combined_decision(
+                look, int(decision.design_index), float(decision.time_s), x,
+                window_m=m.window_m, join=m._join, meet=m._meet,
+                command_of=m.design_command, envelope_index=m.envelope_index)
+        else:
+            new = profile.with_decision(float(decision.position_m),
+                                        m.speed_command(decision.speed_command_mps),
+                                        int(decision.design_index), float(decision.time_s), x,
+                                        m.join_entry, look_m=look)
         state.get_mutable_abstract_state(self._profile).set_value(new)
 
     def _calc_acceleration(self, context, output):
         x, v = self._state(context)
-        output.SetAtIndex(0, self._motion.acceleration(self.profile(context).entries, x, v))
+        output.SetAtIndex(0, self._motion.acceleration(self.profile(context), x, v))
 
     def _calc_design(self, context, output):
         output.SetAtIndex(0, float(self.profile(context).in_force(self._state(context)[0])[1]))
 
     def _calc_reference(self, context, output):
         m = self._motion
-        v_ref, _ = speed_reference(self.profile(context).entries, self._state(context)[0],
-                                   decel_mps2=m.envelope_decel_mps2, margin_m=m.braking_margin_m)
+        v_ref, _ = m.reference(self.profile(context), self._state(context)[0])
         output.SetAtIndex(0, v_ref)
 
 
@@ -214,10 +355,14 @@ class LongitudinalMotion(Diagram):
                  speed_gain_per_s: float = 2.0, initial_speed_mps: float,
                  initial_design_index: int = 0, stop_speed_mps: float = STOP_SPEED_MPS,
                  rate_hz: float = 10.0, offset_s: float | None = None,
-                 braking_margin_m: float = 2.0, envelope_decel_fraction: float = 0.9,
+                 braking_margin_m: float = BRAKING_MARGIN_M,
+                 envelope_decel_fraction: float = ENVELOPE_DECEL_FRACTION,
                  creep_speed_mps: float = 0.1, initial_arc_length_m: float = 0.0,
                  join: dict[tuple[int, int], int] | None = None,
-                 design_speeds_mps: list[float] | None = None):
+                 design_speeds_mps: list[float] | None = None,
+                 frontier_speed_mps: float | None = None,
+                 meet: dict[tuple[int, int], int] | None = None, window_m: float = 0.0,
+                 envelope_index: int | None = None):
         super().__init__()
         for name, value in (("max_decel_mps2", max_decel_mps2),
                             ("max_accel_mps2", max_accel_mps2),
@@ -245,6 +390,21 @@ class LongitudinalMotion(Diagram):
         if (join is None) != (design_speeds_mps is None):
             raise ConfigError("longitudinal: join and design_speeds_mps go together")
         self._join, self._speeds = join, design_speeds_mps
+        if frontier_speed_mps is not None and not (math.isfinite(frontier_speed_mps)
+                                                   and frontier_speed_mps >= 0):
+            raise ConfigError(f"longitudinal: frontier_speed_mps = {frontier_speed_mps!r} must "
+                              "be >= 0")
+        if not (math.isfinite(window_m) and window_m >= 0):
+            raise ConfigError(f"longitudinal: window_m = {window_m!r} must be >= 0")
+        if (meet is not None) != (window_m > 0) or (meet is not None and (
+                join is None or envelope_index is None)):
+            raise ConfigError("longitudinal: combined decisions need meet, window_m > 0, the "
+                              "join table and envelope_index together")
+        self._meet = meet
+        self.frontier_speed_mps = (None if frontier_speed_mps is None
+                                   else self.speed_command(frontier_speed_mps))
+        self.window_m = float(window_m)
+        self.envelope_index = None if envelope_index is None else int(envelope_index)
         period = 1.0 / rate_hz
         self.offset_s = 0.75 * period if offset_s is None else float(offset_s)
 
@@ -277,6 +437,15 @@ class LongitudinalMotion(Diagram):
         return lambda a, b: (self.speed_command(self._speeds[self._join[(a, b)]]),
                              self._join[(a, b)])
 
+    @property
+    def combines(self) -> bool:
+        """Decisions are combined over ``window_m`` (:meth:`SpeedProfile.with_combined_decision`)."""
+        return self._meet is not None
+
+    def design_command(self, design_index: int) -> float:
+        """The speed command (m/s, 0 = stop) of a design: its safe speed."""
+        return self.speed_command(self._speeds[int(design_index)])
+
     def speed_command(self, speed_command_mps: float) -> float:
         """A command below the stop speed (or not finite) means stop: 0."""
         c = float(speed_command_mps)
@@ -297,10 +466,17 @@ class LongitudinalMotion(Diagram):
         """The current :class:`SpeedProfile`, from the ROOT context of the simulation."""
         return self._planner.profile(self._planner.GetMyContextFromRoot(root_context))
 
-    def acceleration(self, entries, x: float, v: float) -> float:
-        """dv/dt of the tracking law (module docstring) at (x, v) for a profile's entries."""
-        v_ref, slope = speed_reference(entries, x, decel_mps2=self.envelope_decel_mps2,
-                                       margin_m=self.braking_margin_m)
+    def reference(self, profile: SpeedProfile, x: float) -> tuple[float, float]:
+        """``(v_ref, dv_ref/dx)`` at x: the profile's entries and, with a frontier speed, the
+        frontier (the last look point, at the slowest command a decision can give)."""
+        frontier = (None if self.frontier_speed_mps is None
+                    else (profile.last_look_m, self.frontier_speed_mps))
+        return speed_reference(profile.entries, x, decel_mps2=self.envelope_decel_mps2,
+                               margin_m=self.braking_margin_m, frontier=frontier)
+
+    def acceleration(self, profile: SpeedProfile, x: float, v: float) -> float:
+        """dv/dt of the tracking law (module docstring) at (x, v) for a profile."""
+        v_ref, slope = self.reference(profile, x)
         target = v_ref - (self.creep_speed_mps if v_ref <= 0.0 else 0.0)
         a = self.speed_gain_per_s * (target - v) + slope * max(v, 0.0)
         a = min(max(a, -self.max_decel_mps2), self.max_accel_mps2)

@@ -20,7 +20,8 @@ from drake_cert.config import load_typed
 from drake_cert.errors import ConfigError
 from systems.route import SegmentSpec
 
-SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "weather_change_in_curve")
+SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "sunny_into_snow",
+                     "weather_change_in_curve")
 PIPELINES = ("certified", "base")
 TASKS = ("classify", "regress")
 ATTACK_KINDS = ("none", "sa", "ea", "nan", "misshaped")
@@ -181,6 +182,10 @@ class Scenario:
     name: str = ""  # short name of the scenario
     seed: int | None = 0  # seed of every random stream; null: OS entropy (deployment)
     transition_m: float = 10.0  # curvature ramps over this length at segment boundaries (m)
+    # the shortest stretch of one road condition the car assumes (m): decisions bridge
+    # abstentions over shorter spans; a route with a shorter stretch (first and last
+    # excepted) is refused (systems.driving.check_route_is_seen)
+    min_condition_length_m: float = 30.0
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)
     perception: PerceptionSettings = dataclasses.field(default_factory=PerceptionSettings)
@@ -196,6 +201,7 @@ class Scenario:
         if self.seed is not None and self.seed < 0:
             raise ConfigError(f"{where}: seed = {self.seed} must be >= 0 (or null)")
         _positive(self.transition_m, "transition_m", where)
+        _positive(self.min_condition_length_m, "min_condition_length_m", where)
         _non_negative(self.t_final_s, "t_final_s", where)
         if not self.route:
             raise ConfigError(f"{where}: route must list at least one segment")

@@ -110,22 +110,49 @@ def test_a_sample_budget_that_can_never_certify_eps_is_refused_before_driving(de
     assert main(["drive", "--scenario", str(wide), "--duration", "0.3", "--designs",
                  designs]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "can never certify" in err[0] and "n_max = 300" in err[0]
+    assert len(err) == 1 and "can never certify" in err[0] and "n_max = 1000" in err[0]
 
 
-def test_a_condition_stretch_shorter_than_the_road_between_two_frames_is_refused(designs,
-                                                                                 tmp_path,
-                                                                                 capsys):
+def _shipped_text(name: str) -> str:
     from pathlib import Path
 
     shipped = Path(__file__).resolve().parents[1] / "drake_cert" / "data" / "scenarios"
-    text = (shipped / "dry_to_snow.yaml").read_text()
-    patch = "  - {length_m: 3.0, curvature_per_m: 0.0, condition: snow}\n"
-    rain = "  - {length_m: 30.0, curvature_per_m: 0.0, condition: rain}"
-    assert rain in text
-    short = tmp_path / "patch.yaml"  # 3 m of snow between sunny and rain, camera at 5 Hz
-    short.write_text(text.replace(rain, patch + rain))
-    assert main(["drive", "--scenario", str(short), "--duration", "0.3", "--designs",
+    return (shipped / f"{name}.yaml").read_text()
+
+
+def _refusal(designs, tmp_path, capsys, text: str) -> str:
+    path = tmp_path / "patched.yaml"
+    path.write_text(text)
+    assert main(["drive", "--scenario", str(path), "--duration", "0.3", "--designs",
                  designs]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "route segment 3 (snow, 3 m" in err[0] and "5 Hz" in err[0]
+    assert len(err) == 1, err
+    return err[0]
+
+
+def test_a_condition_stretch_shorter_than_the_assumed_shortest_is_refused(designs, tmp_path,
+                                                                          capsys):
+    text = _shipped_text("dry_to_snow")
+    patch = "  - {length_m: 12.0, curvature_per_m: 0.0, condition: snow}\n"
+    rain = "  - {length_m: 30.0, curvature_per_m: 0.0, condition: rain}"
+    assert rain in text  # 12 m of snow between sunny and rain: two boundaries in 30 m
+    err = _refusal(designs, tmp_path, capsys, text.replace(rain, patch + rain))
+    assert "route segment 3 (snow, 12 m" in err and "min_condition_length_m = 30 m" in err
+
+
+def test_an_assumed_shortest_stretch_within_the_road_between_two_frames_is_refused(
+        designs, tmp_path, capsys):
+    text = _shipped_text("dry_to_snow").replace("\nmin_condition_length_m: 30.0",
+                                                "\nmin_condition_length_m: 3.0")
+    err = _refusal(designs, tmp_path, capsys, text)
+    assert "min_condition_length_m = 3 m" in err and "5 Hz" in err and "3.87 m" in err
+
+
+def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supports(
+        designs, tmp_path, capsys):
+    # 40 m at 5 Hz: braking at 3.6 m/s^2 from v to the envelope's 6.23 m/s, 2 m margin and
+    # 0.35 s on an unmoved frontier carry v^2 + 2.52 v = 6.23^2 + 7.2 * 38, v = 16.46 m/s;
+    # the sunny design's 19.36 m/s needs 46.67 + 2 + 6.78 = 55.4 m
+    text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 60.0", "  look_ahead_m: 40.0")
+    err = _refusal(designs, tmp_path, capsys, text)
+    assert "supports at most 16.46 m/s" in err and "19.36 m/s" in err and "55.4 m" in err

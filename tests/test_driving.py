@@ -32,14 +32,18 @@ def setup():
     return dict(vehicle=vehicle, conditions=conditions, settings=settings, designs=designs)
 
 
+def within_test_budget(scenario, n=300):
+    """The scenario with at most ``n`` samples per decision (the test budget)."""
+    return dataclasses.replace(scenario, perception=dataclasses.replace(scenario.perception, n=n))
+
+
 def snow_curve():
-    """The end of dry-to-snow: rain, then snow with a 50 m-radius curve; camera at 5 Hz (test
-    budget; the shipped scenario runs at 10 Hz)."""
+    """The end of dry-to-snow: rain, then snow with a 50 m-radius curve; camera at 5 Hz as
+    shipped, at most 300 samples per decision (test budget; the shipped scenario: 1000)."""
     sc = load_scenario("dry_to_snow")
     route = [SegmentSpec(60.0, 0.0, "rain"), SegmentSpec(20.0, 0.0, "snow"),
              SegmentSpec(50.0, 1 / 50, "snow"), SegmentSpec(10.0, 0.0, "snow")]
-    return dataclasses.replace(sc, route=route,
-                               camera=dataclasses.replace(sc.camera, rate_hz=5.0))  # as shipped
+    return within_test_budget(dataclasses.replace(sc, route=route))
 
 
 def short(scenario, seconds):
@@ -135,13 +139,52 @@ def test_switches_respect_the_dwell_time_and_slower_speeds_come_before_the_segme
     assert tape.speed_mps[at_start] <= snow_speed + 0.05
 
 
+def _speed_of(designs, labels):
+    return max(d.speed_mps for d in designs if d.labels == labels)
+
+
+def test_entering_snow_at_full_sunny_speed_the_car_brakes_inside_what_it_has_seen(setup):
+    # 250 m of sunny straight, then snow in a curve; 5 Hz camera 60 m ahead, under SA at the
+    # certified budget. The car reaches the sunny design's speed on the straight and is down
+    # to a design that holds snow, at its safe speed, by the first metre of snow.
+    scenario = with_overrides(within_test_budget(load_scenario("sunny_into_snow")), attack="sa")
+    assert scenario.attack.eps <= scenario.perception.eps
+    result = drive_scenario(scenario, **setup)
+    s, tape = result.summary, result.tape
+    assert not s["left_lane"] and s["ending"] == "route end", s
+    assert s["time_unprotected_s"] == 0.0 and s["design_covers_true_fraction"] == 1.0
+    straight = (tape.arc_length_m > 100.0) & (tape.arc_length_m < 240.0)
+    assert tape.speed_mps[straight].max() >= 0.95 * _speed_of(setup["designs"], ["sunny"])
+    at_snow = np.searchsorted(tape.arc_length_m, 250.0)
+    assert tape.speed_mps[at_snow] <= _speed_of(setup["designs"], ["snow"]) + 0.1
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("name", SHIPPED_SCENARIOS)
-def test_every_shipped_scenario_certified_under_sa_stays_in_lane(setup, name):
-    scenario = with_overrides(load_scenario(name), pipeline="certified", attack="sa")
-    result = drive_scenario(scenario, **setup)
-    assert not result.summary["left_lane"], result.summary
-    assert result.summary["ending"] == "route end"
+@pytest.mark.parametrize("attack", ["none", "sa"])
+def test_every_shipped_scenario_keeps_the_design_in_force_on_the_truth(setup, name, attack):
+    # As shipped (sample budgets included): no attack and SA within the certified budget.
+    scenario = with_overrides(load_scenario(name), pipeline="certified", attack=attack)
+    assert scenario.attack.eps <= scenario.perception.eps
+    s = drive_scenario(scenario, **setup).summary
+    assert not s["left_lane"] and s["ending"] == "route end", s
+    assert s["time_unprotected_s"] == 0.0, s
+
+
+@pytest.mark.slow
+def test_on_the_snow_route_the_certified_car_keeps_its_speed_under_attack(setup):
+    # dry_to_snow as shipped: under SA the certified car keeps >= 80% of its own unattacked
+    # mean speed, unattacked >= 90% of the base car's; the base car leaves its lane under SA.
+    runs = {}
+    for pipeline, attack in (("certified", "none"), ("certified", "sa"), ("base", "none"),
+                             ("base", "sa")):
+        scenario = with_overrides(load_scenario("dry_to_snow"), pipeline=pipeline,
+                                  attack=attack)
+        runs[pipeline, attack] = drive_scenario(scenario, **setup).summary
+    speed = {k: v["mean_speed_mps"] for k, v in runs.items()}
+    assert speed["certified", "sa"] >= 0.8 * speed["certified", "none"], speed
+    assert speed["certified", "none"] >= 0.9 * speed["base", "none"], speed
+    assert runs["base", "sa"]["left_lane"]
 
 
 def hand_tape(truth, lo, hi, speed, design_speed, dt=0.05):

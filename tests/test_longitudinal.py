@@ -165,3 +165,98 @@ def test_the_unseen_road_between_two_look_points_gets_the_join_of_their_designs(
     # Without a join table the old rule: the new design from its own look point.
     old = SpeedProfile(((-math.inf, 6.0, 2),)).with_decision(41.2, 19.0, 0, 0.2, 1.2)
     assert old.with_decision(42.4, 10.0, 1, 0.3, 2.4).in_force(42.0) == (19.0, 0)
+
+
+# Three labels in friction order: sunny (0), rain (1), snow (2); designs are label ranges.
+RANGES = [(0, 0), (1, 1), (2, 2), (0, 1), (1, 2), (0, 2)]  # index 5: the envelope
+RANGE_SPEEDS = [19.0, 16.0, 10.0, 15.0, 9.5, 6.0]
+
+
+def _lattice():
+    index = {r: i for i, r in enumerate(RANGES)}
+    join, meet = {}, {}
+    for i, (a0, a1) in enumerate(RANGES):
+        for j, (b0, b1) in enumerate(RANGES):
+            join[(i, j)] = index[(min(a0, b0), max(a1, b1))]
+            lo, hi = max(a0, b0), min(a1, b1)
+            meet[(i, j)] = index[(lo, hi)] if lo <= hi else 5
+    return join, meet
+
+
+def _combine(looks_designs, window_m=30.0, x=0.0):
+    join, meet = _lattice()
+    prof = SpeedProfile(((-math.inf, 6.0, 5),))
+    for k, (look, design) in enumerate(looks_designs):
+        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x, window_m=window_m,
+                                           join=join, meet=meet,
+                                           command_of=lambda d: RANGE_SPEEDS[d],
+                                           envelope_index=5)
+    return prof
+
+
+def test_an_abstention_between_two_sunny_decisions_gets_sunny_not_the_envelope():
+    # Within 30 m (no stretch of one condition is shorter) at most one boundary lies between
+    # 40 and 44: both ends sunny means sunny all along, whatever the frame at 42 said.
+    prof = _combine([(40.0, 0), (42.0, 5), (44.0, 0)])
+    assert prof.in_force(42.5) == (19.0, 0) and prof.in_force(41.0) == (19.0, 0)
+    assert prof.last_look_m == 44.0
+
+
+def test_a_wide_decision_between_two_narrow_ones_is_narrowed_and_never_widened():
+    prof = _combine([(40.0, 0), (42.0, 3), (44.0, 0)])  # sunny, {sunny, rain}, sunny
+    assert prof.in_force(42.5) == (19.0, 0)
+    # A later abstention does not undo what the pairs before it established.
+    prof2 = _combine([(40.0, 0), (42.0, 3), (44.0, 0), (46.0, 5)])
+    assert prof2.in_force(42.5) == (19.0, 0) and prof2.in_force(45.0) == (6.0, 5)
+
+
+def test_a_boundary_between_two_look_points_gets_the_join_of_both_sides():
+    prof = _combine([(40.0, 0), (42.0, 0), (44.0, 2)])  # sunny, sunny, snow
+    assert prof.in_force(41.0) == (19.0, 0)  # the pair (40, 42) is all sunny...
+    assert prof.in_force(43.0) == (6.0, 5)  # ...the boundary lies in (42, 44): sunny..snow
+    assert prof.in_force(44.5) == (10.0, 2)
+
+
+def test_decisions_a_window_apart_do_not_pair():
+    # 40 sunny, abstentions until 75, sunny at 75: 35 m > 30 m, two boundaries could lie
+    # between, so the stretch keeps the envelope.
+    prof = _combine([(40.0, 0), (50.0, 5), (60.0, 5), (75.0, 0)])
+    assert prof.in_force(55.0) == (6.0, 5) and prof.in_force(65.0) == (6.0, 5)
+
+
+def test_a_decision_contradicting_the_recent_ones_is_taken_as_an_abstention():
+    # {sunny} at 40, {snow} at 42, {sunny} at 44, within 30 m: two boundaries, so one of the
+    # certificates failed. The last one counts as an abstention: nothing is narrowed by it.
+    prof = _combine([(40.0, 0), (42.0, 2), (44.0, 0)])
+    assert prof.in_force(41.0) == (6.0, 5) and prof.in_force(43.0) == (6.0, 5)
+    assert prof.in_force(45.0) == (6.0, 5)
+    # whereas sunny, sunny, snow is a boundary in (42, 44): the join there, snow after
+    prof = _combine([(40.0, 0), (42.0, 0), (44.0, 2)])
+    assert prof.in_force(41.0) == (19.0, 0) and prof.in_force(43.0) == (6.0, 5)
+    assert prof.in_force(45.0) == (10.0, 2)
+
+
+def test_the_frontier_brakes_for_the_slowest_command_at_the_last_look_point():
+    entries = ((-math.inf, 19.0, 0),)
+    free, _ = speed_reference(entries, 0.0, decel_mps2=3.6, margin_m=2.0)
+    capped, slope = speed_reference(entries, 0.0, decel_mps2=3.6, margin_m=2.0,
+                                    frontier=(40.0, 6.23))
+    assert free == 19.0
+    assert capped == pytest.approx(math.sqrt(6.23**2 + 2 * 3.6 * 38.0)) and slope < 0
+    at_margin, _ = speed_reference(entries, 38.5, decel_mps2=3.6, margin_m=2.0,
+                                   frontier=(40.0, 6.23))
+    assert at_margin == 6.23
+
+
+def test_the_supported_speed_brakes_to_the_floor_on_a_frontier_that_has_not_moved():
+    from systems.longitudinal import (frontier_latency_s, look_ahead_needed_m,
+                                      supported_speed_mps)
+
+    v = supported_speed_mps(60.0, 5.0, decel_mps2=3.6, margin_m=2.0, floor_speed_mps=6.23)
+    tau = frontier_latency_s(5.0)
+    assert tau == pytest.approx(0.35)
+    # at v the car has 60 - 2 - tau v left when the frontier is about to move: exactly its
+    # braking distance to 6.23 m/s at 3.6 m/s^2
+    assert (v**2 - 6.23**2) / 7.2 == pytest.approx(60.0 - 2.0 - tau * v)
+    assert look_ahead_needed_m(v, 5.0, decel_mps2=3.6, margin_m=2.0,
+                               floor_speed_mps=6.23) == pytest.approx(60.0)

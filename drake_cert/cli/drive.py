@@ -140,10 +140,16 @@ def run(args) -> int:
         seed, seed_source = entropy_seed(), "os-entropy"
         choices = [dict(c, seed=seed) for c in choices]
     common = _setup(args)
-    from systems.driving import check_perception_budget, check_route_is_seen, moving_envelope
+    from systems.driving import (
+        check_look_ahead,
+        check_perception_budget,
+        check_route_is_seen,
+        moving_envelope,
+    )
 
     table, _ = moving_envelope(common["designs"], common["conditions"], first.perception.preset)
     check_route_is_seen(first, table)
+    check_look_ahead(first, table)
     for choice in choices:
         check_perception_budget(_scenario_for(**choice), common["conditions"])
     if len(choices) == 1:

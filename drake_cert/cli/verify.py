@@ -44,6 +44,9 @@ def _report_dict(report) -> dict:
         "input_failures": [{"condition": c, "message": m} for c, m in report.input_failures],
         "first_failure": None if first is None else {
             "index": first[0], "labels": first[1], "condition": first[2], "message": first[3]},
+        "switching_failures": [{"condition": c, "message": m}
+                               for c, m in report.switching_failures],
+        "notes": list(report.notes),
         "designs": [{"index": d.index, "labels": d.labels, "speed_mps": d.speed_mps,
                      "margins": _finite_or_none(d.margins),
                      "failures": [{"condition": c, "message": m} for c, m in d.failures]}
@@ -81,6 +84,8 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(f"drake-cert verify: checked against the reference {report.checked_against}",
               file=sys.stderr)
+    for note in report.notes:
+        print(f"drake-cert verify: note: {note}", file=sys.stderr)
     if args.json:
         json.dump(_report_dict(report), sys.stdout, indent=1)
         print()

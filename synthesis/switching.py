@@ -1,0 +1,629 @@
+"""Switching certificate: one Lyapunov argument for switching among controller designs.
+
+At run time the driving Diagram switches between designs of one preset (the contiguous label
+ranges of its labels, ``systems.certified_interval.designs_for_preset``): the state feedback
+``u = -k_i s`` of the design in force changes at a switch. Each design's ``k_i`` is certified
+alone by the corner LMI of :mod:`synthesis.gains` (its own Lyapunov matrix) on its box
+``B_i = [C_lo, C_hi] x [speed_min, gain_speed_max]``, with ``[C_lo, C_hi]`` the design's
+:attr:`~synthesis.design.ControllerDesign.certified_interval` (the label interval widened
+down to the Fiala secant stiffness at the design's slip bound: where the true stiffness lies
+while the design is in force, if perception is right). This module certifies the switched
+*reference (state-feedback) loops*
+
+    s' = (A(C(t), V(t)) - b(C(t)) k_sigma(t)) s,      (C(t), V(t)) in B_sigma(t),
+
+state ``s = [e1, e1dot, e2, e2dot]`` (m, m/s, rad, rad/s), decay rates in 1/s, times in s.
+
+``method = "common"``: one matrix ``P`` (normalised: smallest eigenvalue 1; units such that
+``s' P s`` is a weighted squared state) with, at every corner (C, V) of every covered
+design's box,
+
+    (A - b k_i)' P + P (A - b k_i) + 2 lambda P <= 0        (lambda = decay_rate_per_s).
+
+``A(C, V) - b(C) k_i`` is affine in ``(C, C/V)`` (``drake_cert.dynamics.affine_parts``); for a
+fixed P the left side is therefore affine in ``(C, C/V)``, and the image of a box in that plane
+is the convex hull of its four corners' images, so the four corners of each box suffice
+*exactly* (no grid). Then ``V(s) = s' P s`` satisfies ``dV/dt <= -2 lambda V`` pointwise in time
+whatever design is in force, so the loops are exponentially stable at rate lambda
+(``|s(t)| <= sqrt(cond P) e^(-lambda t) |s(0)|``) under switching at any rate, and with C and V
+varying in time (measurably) inside the box of the design in force; ``dwell_time_s = 0``.
+
+``method = "dwell"`` (no common P at any lambda > 0): one matrix ``P_m`` per *mode* (designs
+with the same ``k_m``, certified interval and gain speed range have the same corner matrices
+and share it), each satisfying the inequality above on its own boxes at a common rate
+``lambda_0``, and ``mu = max_{m != n} lambda_max(P_n^-1 P_m) >= 1`` (so ``P_m <= mu P_n``). The
+matrices are found jointly (for fixed lambda_0 and mu the constraints are LMIs; mu by
+bisection, lambda_0 from a short list), which gives a much smaller mu than independent P_m.
+The classical average-dwell-time argument (Hespanha and Morse, 1999): between switches
+``V_sigma`` falls by ``e^(-2 lambda_0 t)``, at a switch it grows at most by mu, so if the number
+of switches in any interval ``(t, T)`` is at most ``N_0 + (T - t) / tau_a`` with
+``tau_a > dwell_time_s = ln(mu) / (2 lambda_0)``, then
+``V(T) <= mu^N_0 e^(-(2 lambda_0 - ln(mu) / tau_a)(T - t)) V(t)``: exponential stability at the
+state rate ``lambda_0 - ln(mu) / (2 tau_a)``. C and V may vary in time inside each box here too.
+
+Neither method says anything about the full L1 loop (predictor, filter, adaptation) under
+switching: see ``systems/switching_controller.py`` for how the adaptive state is handed over
+at a switch; the L1-norm condition is checked per design at frozen speeds.
+
+The solve uses cvxpy + Clarabel (:func:`synthesis.gains.solve_sdp`); the claim stored is what
+the returned matrices prove, recomputed from them by generalized eigenvalues, and
+:func:`check_switching_certificate` rechecks it without any solver.
+"""
+
+import dataclasses
+import itertools
+import math
+import time
+
+import numpy as np
+import scipy.linalg
+
+from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics
+from drake_cert.errors import InfeasibleDesign
+from synthesis.design import ControllerDesign
+
+COMMON = "common"
+DWELL = "dwell"
+NONE = "none"  # no design of the set has a safe speed: nothing switches
+METHODS = (COMMON, DWELL, NONE)
+TABLE_FAMILY = "table"  # the family name when a table embeds no conditions (all its designs)
+
+DECAY_BISECTION_TOLERANCE = 1.0e-3  # 1/s, the common-P decay bisection
+DWELL_DECAY_FRACTIONS = (0.5, 0.75)  # of settings.decay_rate: lambda_0 candidates
+JUMP_START = 1.0e4  # first mu tried (the joint problem is feasible there in practice)
+JUMP_BISECTION_RATIO = 1.05  # mu bisection stops when hi / lo <= this
+JUMP_TOLERANCE = 1.0e-6  # relative slack on the stored mu in the check
+SWITCHING_TOLERANCE = 1.0e-6  # 1/s slack on the decay rate in the check (as the gain grid
+# check's synthesis.gains.GRID_CHECK_TOLERANCE; not imported: loading and checking a certificate
+# needs no cvxpy, only the solve does)
+
+
+@dataclasses.dataclass(frozen=True)
+class SwitchingMode:
+    """Designs sharing one Lyapunov matrix in a ``"dwell"`` certificate.
+
+    ``designs``: their :func:`design_key` names; ``lyapunov_matrix``: P_m (4 x 4, symmetric;
+    the modes' matrices share one scale, the least smallest eigenvalue among them is 1)."""
+
+    designs: tuple[str, ...]
+    lyapunov_matrix: tuple[tuple[float, ...], ...]
+
+
+@dataclasses.dataclass(frozen=True)
+class SwitchingCertificate:
+    """What is proved about switching among one family's designs (module docstring).
+
+    ``family``: the preset whose designs switch among each other (or ``"table"``);
+    ``method``: ``"common"``, ``"dwell"`` or ``"none"`` (no design with a safe speed);
+    ``designs_covered``: :func:`design_key` of every design with a safe speed of the family;
+    ``decay_rate_per_s``: lambda (common) or lambda_0 (dwell), the state decay rate (1/s);
+    ``dwell_time_s``: 0 for "common"; ``ln(mu) / (2 lambda_0)`` for "dwell" (the average dwell
+    time must exceed it); ``lyapunov_matrix``: the common P (4 x 4, smallest eigenvalue 1),
+    None for "dwell"; ``modes``: the per-mode matrices (dwell only); ``jump_factor``: mu (1 for
+    common); ``condition_number``: of P (common) or the largest of the P_m;
+    ``solve_time_s``: wall time of the solve (informative: not checked, not saved).
+    """
+
+    family: str
+    method: str
+    designs_covered: tuple[str, ...]
+    decay_rate_per_s: float
+    dwell_time_s: float
+    lyapunov_matrix: tuple[tuple[float, ...], ...] | None = None
+    modes: tuple[SwitchingMode, ...] = ()
+    jump_factor: float = 1.0
+    condition_number: float = 1.0
+    solve_time_s: float = dataclasses.field(default=0.0, compare=False)
+
+
+def design_key(design: ControllerDesign) -> str:
+    """The name a certificate lists a design under: its labels joined by ``+`` (as
+    ``simulate --labels`` reads them), or ``[C_lo, C_hi]`` (N/rad) for a regression design."""
+    if design.labels:
+        return "+".join(design.labels)
+    return f"[{design.stiffness_lo_n_per_rad:.9g}, {design.stiffness_hi_n_per_rad:.9g}]"
+
+
+def _synthesis(settings) -> SynthesisSettings:
+    return settings.synthesis if isinstance(settings, Settings) else settings
+
+
+def box_corners(design: ControllerDesign, speed_min_mps: float) -> list[tuple[float, float]]:
+    """The four (C, V) corners (N/rad, m/s) of ``certified_interval x [speed_min,
+    gain_speed_max]``."""
+    lo, hi = design.certified_interval
+    v_hi = max(design.gain_speed_max_mps, speed_min_mps)
+    return [(c, v) for c in (lo, hi) for v in (speed_min_mps, v_hi)]
+
+
+def corner_matrices(vehicle: VehicleParams, design: ControllerDesign,
+                    speed_min_mps: float) -> list[np.ndarray]:
+    """``A(C, V) - b(C) k_m`` (4 x 4, 1/s) at the four corners of the design's box."""
+    out = []
+    for c, v in box_corners(design, speed_min_mps):
+        a, b, _ = lateral_error_dynamics(vehicle, c, v)
+        out.append(a - np.outer(b, design.k_m_array))
+    return out
+
+
+def certified_rate(p: np.ndarray, m: np.ndarray) -> float:
+    """Largest lambda (1/s) with ``M' P + P M + 2 lambda P <= 0``: ``-lambda_max(P^-1 sym) / 2``
+    by the symmetric-definite generalized eigenproblem (P must be positive definite)."""
+    lyap = m.T @ p + p @ m
+    lyap = 0.5 * (lyap + lyap.T)
+    return -0.5 * float(scipy.linalg.eigh(lyap, p, eigvals_only=True).max())
+
+
+def jump_factor(p_from: np.ndarray, p_to: np.ndarray) -> float:
+    """``lambda_max(P_to^-1 P_from)``: the least mu with ``P_from <= mu P_to`` (the growth of
+    ``V`` at a switch from the mode of ``p_from`` to that of ``p_to``)."""
+    return float(scipy.linalg.eigh(p_from, p_to, eigvals_only=True).max())
+
+
+def _modes(vehicle, designs, speed_min_mps):
+    """Covered designs grouped by identical corner matrices: [(keys, matrices)]."""
+    groups: dict = {}
+    for d in designs:
+        key = (tuple(d.k_m), d.certified_interval, max(d.gain_speed_max_mps, speed_min_mps))
+        if key not in groups:
+            groups[key] = ([], corner_matrices(vehicle, d, speed_min_mps))
+        groups[key][0].append(design_key(d))
+    return [(tuple(keys), mats) for keys, mats in groups.values()]
+
+
+def _decay_constraints(p, matrices, decay, margin):
+    eye = np.eye(4)
+    out = []
+    for m in matrices:
+        lyap = m.T @ p + p @ m + 2.0 * decay * p
+        out.append(0.5 * (lyap + lyap.T) << -margin * eye)
+    return out
+
+
+class _CommonProblem:
+    """``P >= I``, ``P <= t I``, the decay LMI at every matrix; minimise t (the condition
+    number bound). The decay rate is a cvxpy Parameter: compiled once, solved many times."""
+
+    def __init__(self, matrices, margin):
+        import cvxpy as cp
+
+        self.decay = cp.Parameter(nonneg=True)
+        self.p = cp.Variable((4, 4), symmetric=True)
+        t = cp.Variable()
+        constraints = [self.p >> np.eye(4), self.p << t * np.eye(4)]
+        constraints += _decay_constraints(self.p, matrices, self.decay, margin)
+        self.problem = cp.Problem(cp.Minimize(t), constraints)
+
+    def solve(self, decay):
+        """Normalised P (smallest eigenvalue 1) at this decay rate, or None."""
+        from synthesis.gains import solve_sdp
+
+        self.decay.value = decay
+        if not solve_sdp(self.problem) or self.p.value is None:
+            return None
+        return _normalised(self.p.value)
+
+
+def _normalised(p: np.ndarray) -> np.ndarray:
+    p = 0.5 * (p + p.T)
+    return p / float(np.linalg.eigvalsh(p).min())
+
+
+class _ModeProblem:
+    """Joint ``P_m >= I``, each with the decay LMI on its mode's matrices, and
+    ``P_m <= jump P_n`` for all m != n (a feasibility problem). Decay rate and jump are cvxpy
+    Parameters (the problem is DPP: compiled once)."""
+
+    def __init__(self, modes, margin):
+        import cvxpy as cp
+
+        eye = np.eye(4)
+        self.decay = cp.Parameter(nonneg=True)
+        self.jump = cp.Parameter(nonneg=True)
+        self.ps = [cp.Variable((4, 4), symmetric=True) for _ in modes]
+        constraints = []
+        for p, (_, mats) in zip(self.ps, modes, strict=True):
+            constraints.append(p >> eye)
+            constraints += _decay_constraints(p, mats, self.decay, margin)
+        constraints += [self.ps[i] << self.jump * self.ps[j]
+                        for i, j in itertools.permutations(range(len(self.ps)), 2)]
+        self.problem = cp.Problem(cp.Minimize(0), constraints)
+
+    def solve(self, decay, jump):
+        """The matrices P_m (not normalised: their ratios matter), or None."""
+        from synthesis.gains import solve_sdp
+
+        self.decay.value, self.jump.value = decay, jump
+        if not solve_sdp(self.problem) or any(p.value is None for p in self.ps):
+            return None
+        return [0.5 * (p.value + p.value.T) for p in self.ps]
+
+
+def _largest_jump(ps) -> float:
+    return max((jump_factor(ps[i], ps[j]) for i, j in itertools.permutations(range(len(ps)), 2)),
+               default=1.0)
+
+
+def _as_rows(p: np.ndarray) -> tuple[tuple[float, ...], ...]:
+    return tuple(tuple(float(x) for x in row) for row in p)
+
+
+def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
+                                settings: Settings | SynthesisSettings,
+                                family: str = TABLE_FAMILY) -> SwitchingCertificate:
+    """Switching certificate for the designs with a safe speed among ``designs``.
+
+    Looks for a common P first: bisection (to 1e-3/s) for the largest decay lambda in
+    ``[0, min over corners of -max Re eig]`` at which the corner LMIs (module docstring, with
+    the margin ``settings.lmi_margin`` and ``P >= I``) are feasible, then the best-conditioned P
+    at that lambda. If even lambda = 0 is infeasible, falls back to the dwell certificate
+    (:func:`dwell_certificate`). The stored decay rate is the one the returned P proves at
+    every corner (generalized eigenvalues), rounded down, so the check holds by construction.
+    ``settings``: :class:`Settings` or its ``synthesis`` part (decay_rate, lmi_margin,
+    speed_min_mps are used). Raises :class:`InfeasibleDesign` if no matrices are found for
+    the modes at any trial rate (a solver failure: each mode's own gain LMI holds).
+    """
+    syn = _synthesis(settings)
+    start = time.perf_counter()
+    covered = [d for d in designs if d.has_safe_speed]
+    keys = tuple(design_key(d) for d in covered)
+    if not covered:
+        return SwitchingCertificate(family, NONE, (), 0.0, 0.0)
+    modes = _modes(vehicle, covered, syn.speed_min_mps)
+    matrices = [m for _, mats in modes for m in mats]
+    problem = _CommonProblem(matrices, syn.lmi_margin)
+    p = problem.solve(0.0)
+    if p is None:
+        return dwell_certificate(vehicle, covered, settings, family, modes=modes, start=start)
+    upper = min(-float(np.linalg.eigvals(m).real.max()) for m in matrices)
+    good, bad = 0.0, upper
+    while bad - good > DECAY_BISECTION_TOLERANCE:
+        mid = 0.5 * (good + bad)
+        trial = problem.solve(mid)
+        if trial is None:
+            bad = mid
+        else:
+            good, p = mid, trial
+    decay = _round_down(min(certified_rate(p, m) for m in matrices))
+    return SwitchingCertificate(
+        family, COMMON, keys, decay, 0.0, lyapunov_matrix=_as_rows(p),
+        condition_number=float(f"{np.linalg.cond(p):.6g}"),
+        solve_time_s=time.perf_counter() - start)
+
+
+def dwell_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
+                      settings: Settings | SynthesisSettings, family: str = TABLE_FAMILY,
+                      modes=None, start: float | None = None) -> SwitchingCertificate:
+    """Average-dwell-time certificate (module docstring) for the designs with a safe speed.
+
+    For each lambda_0 in :data:`DWELL_DECAY_FRACTIONS` x ``settings.decay_rate`` (each mode's
+    own gain LMI holds at decay_rate, so each mode has a P there): the joint solve at
+    ``mu = 1e4`` gives matrices whose largest jump is a feasible mu, then bisection on mu
+    (geometric, to a ratio 1.05) for the joint ``P_m <= mu P_n``; the pair (lambda_0, P_m)
+    with the least ``ln(mu) / (2 lambda_0)`` is kept. lambda_0 and mu are then recomputed from
+    the matrices (rounded down and up). A single mode gives ``mu = 1``, dwell 0.
+    """
+    syn = _synthesis(settings)
+    start = time.perf_counter() if start is None else start
+    covered = [d for d in designs if d.has_safe_speed]
+    if not covered:
+        return SwitchingCertificate(family, NONE, (), 0.0, 0.0)
+    modes = modes if modes is not None else _modes(vehicle, covered, syn.speed_min_mps)
+    problem = _ModeProblem(modes, syn.lmi_margin)
+    best = None
+    for fraction in DWELL_DECAY_FRACTIONS:
+        decay = fraction * syn.decay_rate
+        ps = problem.solve(decay, JUMP_START)
+        if ps is None:
+            continue
+        hi, lo = _largest_jump(ps), 1.0
+        while hi / lo > JUMP_BISECTION_RATIO:
+            mid = math.sqrt(lo * hi)
+            trial = problem.solve(decay, mid)
+            if trial is None:
+                lo = mid
+            else:
+                ps, hi = trial, min(mid, _largest_jump(trial))
+        dwell = math.log(max(hi, 1.0)) / (2.0 * decay)
+        if best is None or dwell < best[0]:
+            best = (dwell, ps)
+    if best is None:
+        raise InfeasibleDesign(f"switching certificate ({family}): no Lyapunov matrix found "
+                               "for some design at any trial decay rate (solver failure?)")
+    scale = min(float(np.linalg.eigvalsh(p).min()) for p in best[1])  # one scale for all:
+    ps = [p / scale for p in best[1]]  # the ratios P_n^-1 P_m are the jump factors
+    decay = _round_down(min(certified_rate(p, m) for p, (_, mats) in zip(ps, modes, strict=True)
+                            for m in mats))
+    mu = _round_up(_largest_jump(ps))
+    dwell = _round_up(math.log(mu) / (2.0 * decay)) if decay > 0.0 else math.inf
+    return SwitchingCertificate(
+        family, DWELL, tuple(design_key(d) for d in covered), decay, dwell,
+        modes=tuple(SwitchingMode(keys, _as_rows(p)) for p, (keys, _) in
+                    zip(ps, modes, strict=True)),
+        jump_factor=mu, condition_number=float(f"{max(np.linalg.cond(p) for p in ps):.6g}"),
+        solve_time_s=time.perf_counter() - start)
+
+
+def _round_down(x: float) -> float:
+    """x rounded down to 6 significant digits (a claim never above what was proved)."""
+    if x <= 0.0 or not math.isfinite(x):
+        return float(x)
+    scale = 10.0 ** (math.floor(math.log10(x)) - 5)
+    return float(f"{math.floor(x / scale) * scale:.6g}")
+
+
+def _round_up(x: float) -> float:
+    if x <= 0.0 or not math.isfinite(x):
+        return float(x)
+    scale = 10.0 ** (math.floor(math.log10(x)) - 5)
+    return float(f"{math.ceil(x / scale) * scale:.6g}")
+
+
+def switching_families(designs: list[ControllerDesign], conditions: ConditionsTable | None
+                       ) -> list[tuple[str, list[ControllerDesign]]]:
+    """The sets the run time switches within: per preset of ``conditions`` (already scaled or
+    not: only labels are used), the table's designs of its contiguous label ranges present in
+    the table; without conditions one family ``"table"`` of all designs."""
+    if conditions is None:
+        return [(TABLE_FAMILY, list(designs))]
+    by_labels = {tuple(d.labels): d for d in designs}
+    out = []
+    for preset in conditions.presets:
+        members = [by_labels[tuple(r)] for r in conditions.contiguous_ranges(preset.name)
+                   if tuple(r) in by_labels]
+        out.append((preset.name, members))
+    return out
+
+
+def table_switching_certificates(vehicle: VehicleParams, designs: list[ControllerDesign],
+                                 settings: Settings | SynthesisSettings,
+                                 conditions: ConditionsTable | None = None
+                                 ) -> tuple[SwitchingCertificate, ...]:
+    """One :func:`common_lyapunov_certificate` per family of :func:`switching_families`."""
+    return tuple(common_lyapunov_certificate(vehicle, members, settings, name)
+                 for name, members in switching_families(designs, conditions))
+
+
+# ----------------------------------------------------------------- a switching signal
+
+def chatter_bound(switch_times_s, average_dwell_s: float) -> float:
+    """The least ``N_0`` with ``N(t, T) <= N_0 + (T - t) / tau_a`` for every interval of a
+    switching signal (the chatter bound of the average-dwell-time argument, module docstring).
+
+    ``switch_times_s``: the switching instants (s), sorted; ``average_dwell_s``: tau_a (s).
+    The worst interval starts at a switch and ends at one: ``max_{i <= j} (j - i + 1) -
+    (t_j - t_i) / tau_a``; 0 for a signal without switches. With ``tau_a`` above the
+    certificate's ``dwell_time_s`` the loop's ``V`` grows at most by ``mu^N_0`` beyond its
+    exponential decay.
+    """
+    times = np.asarray(switch_times_s, dtype=float)
+    if times.size == 0:
+        return 0.0
+    if not average_dwell_s > 0:
+        raise ValueError(f"average_dwell_s = {average_dwell_s!r} must be > 0")
+    # (j - i + 1) - (t_j - t_i)/tau = (j - t_j/tau) - (i - t_i/tau) + 1: a running minimum
+    score = np.arange(times.size) - times / average_dwell_s
+    return float(np.max(score - np.minimum.accumulate(score)) + 1.0)
+
+
+def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) -> dict:
+    """What the certificate says about one drive's switching signal (the ``drive --json``
+    fields): the method, the certified decay and average dwell, and for "dwell" the chatter bound ``N_0`` at ``tau_a = 2 dwell_time_s`` (then the reference
+    loops decay at ``lambda_0 / 2`` at least) with the growth factor ``mu^N_0`` it allows."""
+    times = list(switch_times_s)
+    out = {"switching_method": certificate.method,
+           "switching_decay_per_s": certificate.decay_rate_per_s,
+           "certified_average_dwell_s": certificate.dwell_time_s}
+    if certificate.method == DWELL and certificate.dwell_time_s > 0:
+        n0 = chatter_bound(times, 2.0 * certificate.dwell_time_s)
+        out.update(chatter_bound_n0=n0, lyapunov_growth_bound=certificate.jump_factor ** n0)
+    else:  # common P (or nothing switches): any switching signal is covered
+        out.update(chatter_bound_n0=0.0, lyapunov_growth_bound=1.0)
+    return out
+
+
+# ----------------------------------------------------------------- check (no solver)
+
+def check_switching_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
+                                settings: Settings | SynthesisSettings,
+                                certificate: SwitchingCertificate) -> list[str]:
+    """Failures (readable strings) of ``certificate`` for the family ``designs``; [] if it holds.
+
+    No solver: every design of the family with a safe speed must be covered (a certificate
+    covering more designs than the table holds, e.g. a table cut down to a few designs, still
+    proves the switching among those present);
+    every stored matrix must be symmetric positive definite; at every corner of every covered
+    design's box the decay rate the matrix proves, ``-lambda_max(P^-1 sym(M' P + P M)) / 2``
+    (equivalently: ``P^-1/2 ((A - b k)' P + P (A - b k) + 2 lambda P) P^-1/2 <= 2 tol I``),
+    must reach the stored rate within :data:`SWITCHING_TOLERANCE` (1/s); for "dwell",
+    ``max lambda_max(P_n^-1 P_m)`` over modes may not exceed the stored mu, and the stored
+    dwell time may not be below ``ln(mu) / (2 lambda_0)``.
+    """
+    syn = _synthesis(settings)
+    name = f"switching certificate ({certificate.family})"
+    failures = []
+    covered = [d for d in designs if d.has_safe_speed]
+    keys = [design_key(d) for d in covered]
+    if certificate.method not in METHODS:
+        return [f"{name}: unknown method {certificate.method!r}"]
+    missing = [k for k in keys if k not in certificate.designs_covered]
+    if missing:
+        failures.append(f"{name}: design {missing[0]} has a safe speed but is not covered"
+                        + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
+    if certificate.method == NONE:
+        return failures
+    if not (math.isfinite(certificate.decay_rate_per_s) and certificate.decay_rate_per_s > 0.0):
+        failures.append(f"{name}: decay rate {certificate.decay_rate_per_s!r}/s must be positive")
+        return failures
+    if certificate.method == COMMON:
+        if certificate.lyapunov_matrix is None:
+            return failures + [f"{name}: method 'common' without a Lyapunov matrix"]
+        matrix_of = {k: ("P", certificate.lyapunov_matrix) for k in keys}
+        if certificate.dwell_time_s != 0.0:
+            failures.append(f"{name}: a common P needs no dwell time, but "
+                            f"{certificate.dwell_time_s} s is stored")
+    else:
+        matrix_of = {}
+        for i, mode in enumerate(certificate.modes):
+            for k in mode.designs:
+                matrix_of[k] = (f"P_{i}", mode.lyapunov_matrix)
+        unassigned = [k for k in keys if k not in matrix_of]
+        if unassigned:
+            failures.append(f"{name}: design {unassigned[0]} has no mode Lyapunov matrix")
+    matrices = {}
+    for label, rows in {v[0]: v[1] for v in matrix_of.values()}.items():
+        p = np.asarray(rows, dtype=float)
+        if p.shape != (4, 4) or not np.all(np.isfinite(p)):
+            failures.append(f"{name}: {label} must be a finite 4 x 4 matrix")
+            continue
+        if np.abs(p - p.T).max() > 1e-9 * max(np.abs(p).max(), 1.0):
+            failures.append(f"{name}: {label} is not symmetric")
+            continue
+        if np.linalg.eigvalsh(p).min() <= 0.0:
+            failures.append(f"{name}: {label} is not positive definite (smallest eigenvalue "
+                            f"{np.linalg.eigvalsh(p).min():.6g})")
+            continue
+        matrices[label] = p
+    wanted = certificate.decay_rate_per_s - SWITCHING_TOLERANCE
+    for d, key in zip(covered, keys, strict=True):
+        if key not in matrix_of or matrix_of[key][0] not in matrices:
+            continue
+        label = matrix_of[key][0]
+        p = matrices[label]
+        for (c, v), m in zip(box_corners(d, syn.speed_min_mps),
+                             corner_matrices(vehicle, d, syn.speed_min_mps), strict=True):
+            rate = certified_rate(p, m)
+            if rate < wanted:
+                failures.append(
+                    f"{name}: at design {key}'s corner C = {c:.6g} N/rad, V = {v:.4g} m/s, "
+                    f"{label} proves decay {rate:.6g}/s < the stored {certificate.decay_rate_per_s}"
+                    "/s (max eig of the symmetrised LMI "
+                    f"{_lmi_max_eig(p, m, certificate.decay_rate_per_s):.6g} > 0)")
+                break
+    if certificate.method == DWELL:  # the jumps among the modes this table's designs use
+        mu = _largest_jump(list(matrices.values()))
+        if mu > certificate.jump_factor * (1.0 + JUMP_TOLERANCE):
+            failures.append(f"{name}: jump factor max lambda_max(P_n^-1 P_m) = {mu:.6g} exceeds "
+                            f"the stored {certificate.jump_factor}")
+        need = math.log(max(mu, 1.0)) / (2.0 * certificate.decay_rate_per_s)
+        if certificate.dwell_time_s < need * (1.0 - JUMP_TOLERANCE):
+            failures.append(f"{name}: dwell time {certificate.dwell_time_s} s is below "
+                            f"ln(mu) / (2 lambda_0) = {need:.6g} s")
+    return failures
+
+
+def _lmi_max_eig(p, m, decay) -> float:
+    lyap = m.T @ p + p @ m + 2.0 * decay * p
+    return float(np.linalg.eigvalsh(0.5 * (lyap + lyap.T)).max())
+
+
+def check_table_switching(vehicle: VehicleParams, designs: list[ControllerDesign],
+                          settings: Settings | SynthesisSettings,
+                          conditions: ConditionsTable | None,
+                          certificates: tuple[SwitchingCertificate, ...]) -> list[str]:
+    """:func:`check_switching_certificate` for every family of :func:`switching_families`;
+    a family with a design with a safe speed but no certificate, a family certified twice, and
+    a design with a safe speed in no family are failures too (a certificate for a family the
+    conditions do not name proves nothing needed and is ignored)."""
+    families = switching_families(designs, conditions)
+    by_family = {c.family: c for c in certificates}
+    failures = []
+    if len(by_family) != len(certificates):
+        failures.append("switching certificates: a family is certified twice")
+    in_family = {design_key(d) for _, members in families for d in members}
+    for d in designs:
+        if d.has_safe_speed and design_key(d) not in in_family:
+            failures.append(f"switching certificates: design {design_key(d)} has a safe speed "
+                            "but belongs to no switching family (no preset's label range)")
+    for name, members in families:
+        if name not in by_family:
+            if any(d.has_safe_speed for d in members):
+                failures.append(f"switching certificates: family {name} has no certificate")
+            continue
+        failures += check_switching_certificate(vehicle, members, settings, by_family[name])
+    return failures
+
+
+# ----------------------------------------------------------------- YAML mapping
+
+def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
+    """Plain YAML-able mapping (lists, floats) of one certificate."""
+    out = {
+        "family": certificate.family,
+        "method": certificate.method,
+        "designs_covered": list(certificate.designs_covered),
+        "decay_rate_per_s": float(certificate.decay_rate_per_s),
+        "dwell_time_s": float(certificate.dwell_time_s),
+        "jump_factor": float(certificate.jump_factor),
+        "condition_number": float(certificate.condition_number),
+    }
+    if certificate.lyapunov_matrix is not None:
+        out["lyapunov_matrix"] = [list(row) for row in certificate.lyapunov_matrix]
+    if certificate.modes:
+        out["modes"] = [{"designs": list(m.designs),
+                         "lyapunov_matrix": [list(row) for row in m.lyapunov_matrix]}
+                        for m in certificate.modes]
+    return out
+
+
+_CERT_REQUIRED = ("family", "method", "designs_covered", "decay_rate_per_s", "dwell_time_s")
+_CERT_OPTIONAL = ("lyapunov_matrix", "modes", "jump_factor", "condition_number")
+
+
+def certificate_from_dict(data, where: str) -> SwitchingCertificate:
+    """Parse one certificate mapping; :class:`ValueError` naming ``where`` and the key."""
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a mapping")
+    unknown = sorted(set(data) - set(_CERT_REQUIRED) - set(_CERT_OPTIONAL))
+    if unknown:
+        raise ValueError(f"{where}: unknown key {unknown[0]!r}")
+    for key in _CERT_REQUIRED:
+        if key not in data:
+            raise ValueError(f"{where}: missing key {key!r}")
+    if not isinstance(data["family"], str):
+        raise ValueError(f"{where}.family must be a string")
+    if data["method"] not in METHODS:
+        raise ValueError(f"{where}.method = {data['method']!r} must be one of "
+                         f"{', '.join(METHODS)}")
+    covered = data["designs_covered"]
+    if not isinstance(covered, list) or not all(isinstance(x, str) for x in covered):
+        raise ValueError(f"{where}.designs_covered must be a list of design names")
+    numbers = {}
+    for key, default in (("decay_rate_per_s", None), ("dwell_time_s", None),
+                         ("jump_factor", 1.0), ("condition_number", 1.0)):
+        value = data.get(key, default)
+        if not isinstance(value, (int, float)) or isinstance(value, bool) or math.isnan(value):
+            raise ValueError(f"{where}.{key} = {value!r} must be a number")
+        numbers[key] = float(value)
+    matrix = (_matrix(data["lyapunov_matrix"], f"{where}.lyapunov_matrix")
+              if "lyapunov_matrix" in data else None)
+    modes = data.get("modes", [])
+    if not isinstance(modes, list):
+        raise ValueError(f"{where}.modes must be a list")
+    parsed_modes = []
+    for i, mode in enumerate(modes):
+        here = f"{where}.modes[{i}]"
+        if not isinstance(mode, dict) or set(mode) != {"designs", "lyapunov_matrix"}:
+            raise ValueError(f"{here} must be a mapping with designs and lyapunov_matrix")
+        if not isinstance(mode["designs"], list) or not all(isinstance(x, str)
+                                                            for x in mode["designs"]):
+            raise ValueError(f"{here}.designs must be a list of design names")
+        parsed_modes.append(SwitchingMode(tuple(mode["designs"]),
+                                          _matrix(mode["lyapunov_matrix"],
+                                                  f"{here}.lyapunov_matrix")))
+    return SwitchingCertificate(
+        family=data["family"], method=data["method"], designs_covered=tuple(covered),
+        decay_rate_per_s=numbers["decay_rate_per_s"], dwell_time_s=numbers["dwell_time_s"],
+        lyapunov_matrix=matrix, modes=tuple(parsed_modes), jump_factor=numbers["jump_factor"],
+        condition_number=numbers["condition_number"])
+
+
+def _matrix(rows, where: str) -> tuple[tuple[float, ...], ...]:
+    ok = (isinstance(rows, list) and len(rows) == 4
+          and all(isinstance(r, list) and len(r) == 4 for r in rows)
+          and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
+                  for r in rows for x in r))
+    if not ok:
+        raise ValueError(f"{where} must be a 4 x 4 list of finite numbers")
+    return tuple(tuple(float(x) for x in r) for r in rows)

@@ -1,0 +1,352 @@
+"""Switching among a preset's designs (synthesis.switching): what is proved, checked without
+the solver that found it, and what verify refuses.
+
+The claims, for the shipped vehicle, conditions and settings:
+- the rtk-like designs share one Lyapunov matrix P: every corner of every design's box
+  satisfies the decay LMI (eigenvalues), so the reference loops stay exponentially stable at
+  the certified rate under switching every 10 ms with stiffness and speed varying in time;
+- the other three presets have no common quadratic Lyapunov matrix (a dual witness, checked by
+  eigenvalues), and across presets switching can even diverge (an explicit periodic signal);
+  their certificates are average-dwell-time ones, and a simulation obeying the dwell keeps
+  ``V_sigma`` under the bound the argument gives;
+- verify rejects a tampered matrix, an inflated decay or dwell, and an uncovered design; a
+  file written before certificates existed still loads and verifies, with a note.
+"""
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import scipy.linalg
+import yaml
+
+from drake_cert import cli
+from drake_cert.dynamics import lateral_error_dynamics
+from synthesis import gains, switching
+from synthesis.design_io import DesignTable, load_design_file, save_design_table
+from synthesis.switching import (
+    COMMON,
+    DWELL,
+    check_switching_certificate,
+    check_table_switching,
+    design_key,
+    switching_families,
+)
+from synthesis.verify import SWITCHING, verify_design_table
+
+STEP_S = 0.01  # switching period of the simulations (s)
+ACCEL_MPS2 = 4.0  # |dV/dt| of the simulations
+
+
+@pytest.fixture(scope="module")
+def certified(default_design_table) -> DesignTable:
+    """The shipped table with its switching certificates (what synthesize --out writes)."""
+    from synthesis.design_io import with_switching_certificates
+
+    return with_switching_certificates(default_design_table)
+
+
+def _family(table, name):
+    return dict(switching_families(table.designs, table.conditions))[name]
+
+
+def _certificate(table, name):
+    return {c.family: c for c in table.switching}[name]
+
+
+def _speed_min(table):
+    return table.settings.synthesis.speed_min_mps
+
+
+def _closed_loop(table, design, c, v):
+    a, b, _ = lateral_error_dynamics(table.vehicle, c, v)
+    return a - np.outer(b, design.k_m_array)
+
+
+def _proved_rate(p, m):
+    """Decay rate P proves for M, by plain numpy: P = L L', rate = -lambda_max(L^-1 sym L^-T)/2."""
+    l_inv = np.linalg.inv(np.linalg.cholesky(p))
+    lyap = m.T @ p + p @ m
+    return -0.5 * np.linalg.eigvalsh(l_inv @ (0.5 * (lyap + lyap.T)) @ l_inv.T).max()
+
+
+def test_the_check_uses_the_gain_grid_checks_tolerance():
+    assert switching.SWITCHING_TOLERANCE == gains.GRID_CHECK_TOLERANCE
+
+
+def test_every_preset_is_certified_and_the_certificates_check(certified):
+    methods = {c.family: c.method for c in certified.switching}
+    assert methods == {"carla-like": DWELL, "rtk-like": COMMON, "robotcar-like": DWELL,
+                       "weather": DWELL}
+    assert check_table_switching(certified.vehicle, certified.designs, certified.settings,
+                                 certified.conditions, certified.switching) == []
+    for c in certified.switching:
+        assert 0.0 < c.decay_rate_per_s <= certified.settings.synthesis.decay_rate + 0.05
+        assert (c.dwell_time_s == 0.0) == (c.method == COMMON)
+
+
+def test_rtk_like_designs_share_a_lyapunov_matrix_checked_at_every_corner(certified):
+    cert = _certificate(certified, "rtk-like")
+    p = np.array(cert.lyapunov_matrix)
+    assert np.allclose(p, p.T) and np.linalg.eigvalsh(p).min() == pytest.approx(1.0)
+    designs = [d for d in _family(certified, "rtk-like") if d.has_safe_speed]
+    assert sorted(cert.designs_covered) == sorted(design_key(d) for d in designs)
+    tol = gains.GRID_CHECK_TOLERANCE
+    for d in designs:
+        lo, hi = d.certified_interval
+        for c in (lo, hi):
+            for v in (_speed_min(certified), d.gain_speed_max_mps):
+                m = _closed_loop(certified, d, c, v)
+                lmi = m.T @ p + p @ m + 2.0 * cert.decay_rate_per_s * p
+                # symmetrised LMI <= 0 up to the tolerance, measured in P's own scale
+                scale = np.linalg.eigvalsh(p).max()
+                assert np.linalg.eigvalsh(0.5 * (lmi + lmi.T)).max() <= 2 * tol * scale
+                assert _proved_rate(p, m) >= cert.decay_rate_per_s - tol
+        # the corners suffice (affine in (C, C/V)); inside the box it holds too
+        for c in np.linspace(lo, hi, 7):
+            for v in np.linspace(_speed_min(certified), d.gain_speed_max_mps, 7):
+                assert _proved_rate(p, _closed_loop(certified, d, c, v)) >= \
+                    cert.decay_rate_per_s - tol
+
+
+def test_arbitrary_switching_with_time_varying_stiffness_and_speed_decays_at_the_certified_rate(
+        certified):
+    """s' = (A(C_t, V_t) - b(C_t) k_i(t)) s: a random design every 10 ms, C random in its
+    certified interval, V changing at +-4 m/s^2 inside its speed range; exact steps."""
+    cert = _certificate(certified, "rtk-like")
+    p = np.array(cert.lyapunov_matrix)
+    designs = [d for d in _family(certified, "rtk-like") if d.has_safe_speed]
+    rng = np.random.default_rng(7)
+    rate = cert.decay_rate_per_s - gains.GRID_CHECK_TOLERANCE
+    v_min = _speed_min(certified)
+    for _ in range(3):
+        mats, v = [], rng.uniform(v_min, 30.0)
+        for _ in range(1000):  # 10 s
+            d = designs[rng.integers(len(designs))]
+            v = float(np.clip(v + rng.choice((-1.0, 1.0)) * ACCEL_MPS2 * STEP_S, v_min,
+                              d.gain_speed_max_mps))
+            mats.append(_closed_loop(certified, d, rng.uniform(*d.certified_interval), v))
+        steps = scipy.linalg.expm(np.array(mats) * STEP_S)  # exact, one per 10 ms
+        s = rng.normal(size=4) * np.array([1.0, 0.5, 0.1, 0.1])
+        lyap0 = s @ p @ s
+        for k, step in enumerate(steps, start=1):
+            before = s @ p @ s
+            s = step @ s
+            after = s @ p @ s
+            assert after <= before * math.exp(-2.0 * rate * STEP_S) * (1 + 1e-9)
+            assert after <= lyap0 * math.exp(-2.0 * rate * k * STEP_S) * (1 + 1e-8)
+
+
+def _no_common_p_witness(matrices):
+    """Z_k >= 0, sum tr Z_k = 1, with sum (M_k Z_k + Z_k M_k') >= delta I: maximise delta.
+    Returns the Z_k projected onto the PSD cone (so the proof below needs no solver)."""
+    import cvxpy as cp
+
+    zs = [cp.Variable((4, 4), symmetric=True) for _ in matrices]
+    delta = cp.Variable()
+    total = sum(m @ z + z @ m.T for m, z in zip(matrices, zs, strict=True))
+    problem = cp.Problem(cp.Maximize(delta),
+                         [z >> 0 for z in zs] + [sum(cp.trace(z) for z in zs) == 1,
+                                                 0.5 * (total + total.T) >> delta * np.eye(4)])
+    assert gains.solve_sdp(problem)
+    out = []
+    for z in zs:
+        w, u = np.linalg.eigh(0.5 * (z.value + z.value.T))
+        out.append((u * np.clip(w, 0.0, None)) @ u.T)
+    return out
+
+
+@pytest.mark.parametrize("preset", ["carla-like", "robotcar-like", "weather"])
+def test_no_common_quadratic_lyapunov_matrix_exists_for_the_other_presets(certified, preset):
+    """If P > 0 had M_k' P + P M_k < 0 at every corner, then for Z_k >= 0 (not all 0)
+    0 > sum tr((M_k' P + P M_k) Z_k) = tr(P sum (M_k Z_k + Z_k M_k')), which a witness with
+    sum (M_k Z_k + Z_k M_k') > 0 makes positive: no such P (at any decay rate >= 0)."""
+    designs = [d for d in _family(certified, preset) if d.has_safe_speed]
+    matrices = [_closed_loop(certified, d, c, v) for d in designs
+                for c in d.certified_interval
+                for v in (_speed_min(certified), d.gain_speed_max_mps)]
+    zs = _no_common_p_witness(matrices)
+    assert all(np.linalg.eigvalsh(z).min() >= -1e-12 for z in zs)  # PSD up to rounding
+    assert sum(np.trace(z) for z in zs) > 0.5
+    total = sum(m @ z + z @ m.T for m, z in zip(matrices, zs, strict=True))
+    assert np.linalg.eigvalsh(0.5 * (total + total.T)).min() > 1e-3
+    assert _certificate(certified, preset).method == DWELL
+
+
+def test_switching_across_presets_can_diverge(certified):
+    """Why certificates are per preset (the run time switches within one): the sand design at
+    its (C_lo, 30 m/s) corner for 1.71 s, then the sunny+rain+snow design at (C_hi, 30 m/s)
+    for 85 ms, repeated, grows (spectral radius of one period > 1): no Lyapunov function of any
+    kind is common to the whole table."""
+    by = {tuple(d.labels): d for d in certified.designs}
+    sand, wide = by[("sand",)], by[("sunny", "rain", "snow")]
+    period = (scipy.linalg.expm(_closed_loop(certified, wide, wide.certified_interval[1], 30.0)
+                                * 0.085)
+              @ scipy.linalg.expm(_closed_loop(certified, sand, sand.certified_interval[0], 30.0)
+                                  * 1.71))
+    assert np.abs(np.linalg.eigvals(period)).max() > 1.05
+
+
+def test_switching_that_respects_the_dwell_time_stays_under_the_average_dwell_bound(certified):
+    """carla-like: V_sigma(s) = s' P_sigma s falls by exp(-2 lambda_0 t) between switches and
+    grows at most by mu at one; switching every 1.2 x dwell_time_s to a random design, with C
+    and V moving inside its box every 10 ms, stays under mu^N exp(-2 lambda_0 t) V(0)."""
+    cert = _certificate(certified, "carla-like")
+    p_of = {k: np.array(m.lyapunov_matrix) for m in cert.modes for k in m.designs}
+    designs = [d for d in _family(certified, "carla-like") if d.has_safe_speed]
+    rng = np.random.default_rng(3)
+    rate = cert.decay_rate_per_s - gains.GRID_CHECK_TOLERANCE
+    hold = max(1, round(1.2 * cert.dwell_time_s / STEP_S))
+    d = designs[0]
+    s = rng.normal(size=4) * np.array([1.0, 0.5, 0.1, 0.1])
+    v = 20.0
+    lyap0, switches = s @ p_of[design_key(d)] @ s, 0
+    for k in range(1, 1201):  # 12 s
+        if k % hold == 0:
+            d, switches = designs[rng.integers(len(designs))], switches + 1
+        v = float(np.clip(v + rng.choice((-1.0, 1.0)) * ACCEL_MPS2 * STEP_S,
+                          _speed_min(certified), d.gain_speed_max_mps))
+        s = scipy.linalg.expm(_closed_loop(certified, d, rng.uniform(*d.certified_interval), v)
+                              * STEP_S) @ s
+        bound = cert.jump_factor ** switches * math.exp(-2.0 * rate * k * STEP_S) * lyap0
+        assert s @ p_of[design_key(d)] @ s <= bound * (1 + 1e-8)
+    assert s @ p_of[design_key(d)] @ s < 0.2 * lyap0  # and it has decayed
+
+
+# ------------------------------------------------------------------ file and verify
+
+@pytest.fixture(scope="module")
+def rtk_table(certified) -> DesignTable:
+    """The rtk-like designs alone (verify has 6 designs to recompute), certificates computed on
+    save (the table embeds its conditions, as synthesize writes it)."""
+    keep = {design_key(d) for d in _family(certified, "rtk-like")}
+    return dataclasses.replace(certified, designs=[d for d in certified.designs
+                                                   if design_key(d) in keep], switching=None)
+
+
+@pytest.fixture(scope="module")
+def rtk_file(rtk_table, tmp_path_factory):
+    path = tmp_path_factory.mktemp("switching") / "rtk.yaml"
+    save_design_table(path, rtk_table)
+    return path
+
+
+def test_the_certificates_round_trip_through_the_file_and_verify_passes(certified, rtk_file,
+                                                                         tmp_path, capsys):
+    loaded = load_design_file(rtk_file)
+    assert [c.family for c in loaded.switching] == [c.family for c in certified.switching]
+    assert _certificate(loaded, "rtk-like") == _certificate(certified, "rtk-like")
+    report = verify_design_table(loaded, require_switching=True)
+    assert report.ok and report.switching_failures == [] and report.notes == []
+    path = tmp_path / "all.yaml"
+    save_design_table(path, certified)
+    assert load_design_file(path).switching == certified.switching
+
+
+def _edited(rtk_file, tmp_path, edit):
+    raw = yaml.safe_load(rtk_file.read_text())
+    edit({c["family"]: c for c in raw["switching"]}, raw)
+    path = tmp_path / "tampered.yaml"
+    path.write_text(yaml.safe_dump(raw, sort_keys=False))
+    return path
+
+
+def _verify_fails(path, capsys, *needles):
+    assert cli.main(["verify", str(path)]) == 1
+    err = capsys.readouterr().err
+    assert "the design file fails switching" in err
+    for needle in needles:
+        assert needle in err
+
+
+def test_verify_rejects_a_tampered_lyapunov_matrix(rtk_file, tmp_path, capsys):
+    def edit(certs, raw):
+        p = certs["rtk-like"]["lyapunov_matrix"]
+        p[0][2] = p[2][0] = p[0][2] * 0.5
+
+    _verify_fails(_edited(rtk_file, tmp_path, edit), capsys, "(rtk-like)", "proves decay")
+
+
+def test_verify_rejects_an_inflated_decay_rate(rtk_file, tmp_path, capsys):
+    def edit(certs, raw):
+        certs["rtk-like"]["decay_rate_per_s"] *= 1.2
+
+    _verify_fails(_edited(rtk_file, tmp_path, edit), capsys, "(rtk-like)", "proves decay")
+
+
+def test_verify_rejects_a_matrix_that_is_not_positive_definite(rtk_file, tmp_path, capsys):
+    def edit(certs, raw):
+        certs["rtk-like"]["lyapunov_matrix"] = (-np.eye(4)).tolist()
+
+    _verify_fails(_edited(rtk_file, tmp_path, edit), capsys, "not positive definite")
+
+
+def test_verify_rejects_a_design_the_certificate_does_not_cover(rtk_file, tmp_path, capsys):
+    def edit(certs, raw):  # as if the design had been added after the certificate
+        certs["rtk-like"]["designs_covered"].remove("cobblestone+sand")
+
+    _verify_fails(_edited(rtk_file, tmp_path, edit), capsys,
+                  "cobblestone+sand has a safe speed but is not covered")
+
+
+def test_an_added_design_outside_every_family_fails(certified, rtk_table):
+    extra = dataclasses.replace(_family(certified, "rtk-like")[0], labels=[])  # a regression design
+    table = dataclasses.replace(rtk_table, designs=rtk_table.designs + [extra],
+                                switching=certified.switching)
+    failures = check_table_switching(table.vehicle, table.designs, table.settings,
+                                     table.conditions, table.switching)
+    assert len(failures) == 1 and "belongs to no switching family" in failures[0]
+    # without conditions the family is the whole table: the new design is not covered
+    cert = switching.common_lyapunov_certificate(table.vehicle, rtk_table.designs, table.settings)
+    assert check_switching_certificate(table.vehicle, table.designs, table.settings, cert) == [
+        f"switching certificate (table): design {design_key(extra)} has a safe speed but is not "
+        "covered"]
+    assert design_key(extra) == "[40000, 60000]"  # a regression design is named by its interval
+
+
+def test_dwell_certificates_recheck_the_jump_factor_and_dwell(certified):
+    cert = _certificate(certified, "carla-like")
+    designs = _family(certified, "carla-like")
+    args = (certified.vehicle, designs, certified.settings)
+    assert check_switching_certificate(*args, cert) == []
+    shorter = dataclasses.replace(cert, dwell_time_s=0.5 * cert.dwell_time_s)
+    assert any("dwell time" in f for f in check_switching_certificate(*args, shorter))
+    smaller = dataclasses.replace(cert, jump_factor=1.0 + 0.5 * (cert.jump_factor - 1.0))
+    assert any("jump factor" in f for f in check_switching_certificate(*args, smaller))
+
+
+def test_a_file_without_certificates_loads_and_verifies_with_a_note(rtk_table, tmp_path):
+    path = tmp_path / "old.yaml"
+    save_design_table(path, rtk_table, switching=False)
+    assert "switching" not in yaml.safe_load(path.read_text())
+    old = load_design_file(path)
+    assert old.switching is None
+    report = verify_design_table(old)
+    assert report.ok and len(report.notes) == 1 and "no switching certificate" in report.notes[0]
+    strict = verify_design_table(old, require_switching=True)
+    assert not strict.ok and strict.switching_failures[0][0] == SWITCHING
+
+
+def test_a_malformed_switching_section_is_refused_naming_the_key(rtk_file, tmp_path):
+    from drake_cert.errors import DesignFormatError
+
+    def edit(certs, raw):
+        certs["rtk-like"]["lyapunov_matrix"][1] = [1.0, 2.0]
+
+    with pytest.raises(DesignFormatError, match=r"switching\[1\]\.lyapunov_matrix must be a 4 x 4"):
+        load_design_file(_edited(rtk_file, tmp_path, edit))
+
+
+def test_the_chatter_bound_is_the_worst_burst_beyond_one_switch_per_average_dwell():
+    from synthesis.switching import chatter_bound
+
+    assert chatter_bound([], 1.0) == 0.0
+    assert chatter_bound([3.0], 1.0) == 1.0  # one switch: N(t, T) = 1 on any interval
+    assert chatter_bound([0.0, 5.0, 10.0], 1.0) == 1.0  # slower than tau_a: no burst
+    assert chatter_bound([0.0, 0.1, 0.2], 1.0) == pytest.approx(3.0 - 0.2)
+    # the definition, by brute force over every interval between two switches
+    times = np.sort(np.random.default_rng(0).uniform(0.0, 20.0, 15))
+    brute = max((j - i + 1) - (times[j] - times[i]) / 2.5
+                for i in range(15) for j in range(i, 15))
+    assert chatter_bound(times, 2.5) == pytest.approx(brute)
