@@ -14,19 +14,19 @@ def peak_lateral_offset(tape) -> float:
 
 def left_lane(tape) -> bool:
     """True when |e1| exceeded the lane margin (lane - car width)/2 at some sample."""
-    return peak_lateral_offset(tape) > tape.lane_margin_m
+    return not peak_lateral_offset(tape) <= tape.lane_margin_m  # a NaN state (diverged) too
 
 
 def time_left_lane(tape) -> float | None:
     """First time (s) |e1| exceeded the lane margin, linearly interpolated between the last
     sample inside and the first sample outside the lane; None if it never did."""
     e1 = np.abs(tape.states[:, 0])
-    outside = np.flatnonzero(e1 > tape.lane_margin_m)
+    outside = np.flatnonzero(~(e1 <= tape.lane_margin_m))  # NaN (a diverged run) counts
     if outside.size == 0:
         return None
     i = int(outside[0])
-    if i == 0:
-        return float(tape.times_s[0])
+    if i == 0 or not np.isfinite(e1[i]):
+        return float(tape.times_s[i])
     t0, t1, a, b = tape.times_s[i - 1], tape.times_s[i], e1[i - 1], e1[i]
     return float(t0 + (t1 - t0) * (tape.lane_margin_m - a) / (b - a))
 

@@ -245,7 +245,7 @@ def off_road_monitor(loop: ClosedLoop):
 
     def monitor(root_context):
         e1 = state_port.Eval(loop.plant.GetMyContextFromRoot(root_context))[0]
-        if abs(e1) > OFF_ROAD_M:
+        if not abs(e1) <= OFF_ROAD_M:  # NaN too: a diverged simulation is off the road
             return EventStatus.ReachedTermination(
                 loop.diagram, f"off the road: |e1| = {abs(e1):.2f} m > {OFF_ROAD_M} m")
         return EventStatus.Succeeded()

@@ -334,9 +334,6 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     if scenario.seed is None:  # deployment: fresh noise, recorded so the drive can be replayed
         scenario, seed_source = dataclasses.replace(scenario, seed=entropy_seed()), "os-entropy"
     p, cam, att = scenario.perception, scenario.camera, scenario.attack
-    if scenario.controller.law != "piecewise_constant":
-        raise ConfigError("the driving Diagram runs the piecewise-constant law (controller.law);"
-                          " the gradient law is available in `drake-cert simulate`")
     certified = p.pipeline == "certified"
     table, envelope = moving_envelope(designs, conditions, p.preset)
     check_route_is_seen(scenario, table)
@@ -397,7 +394,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
     controller = add("switching_l1_controller", SwitchingL1Controller(
         vehicle=vehicle, designs=table, settings=settings, initial_design_index=envelope,
-        initial_speed_mps=v0, curvature_preview=preview))
+        initial_speed_mps=v0, curvature_preview=preview, law=scenario.controller.law))
     limit = vehicle.steering_limit_rad
     saturation = add("steering_saturation", Saturation([-limit], [limit]))
     plant = add("plant", NonlinearLateralPlant(vehicle,
@@ -506,7 +503,8 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
 
     def monitor(root):
         t = root.get_time()
-        if abs(state_port.Eval(plant_context)[0]) > OFF_ROAD_M:
+        e1 = state_port.Eval(plant_context)[0]
+        if not abs(e1) <= OFF_ROAD_M:  # NaN too: a diverged simulation is not in its lane
             ending["reason"] = "off road"
             return EventStatus.ReachedTermination(built.diagram, "off road")
         if arc_port.Eval(motion_context)[0] >= route.total_length_m:
@@ -615,7 +613,7 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
 
 def time_left_lane(tape: DriveTape) -> float | None:
     """First logged time (s) at which |e1| exceeded the lane margin; None if never."""
-    out = np.nonzero(np.abs(tape.lateral_offset_m) > tape.lane_margin_m)[0]
+    out = np.nonzero(~(np.abs(tape.lateral_offset_m) <= tape.lane_margin_m))[0]  # NaN: out
     return float(tape.times_s[out[0]]) if len(out) else None
 
 

@@ -27,6 +27,7 @@ TASKS = ("classify", "regress")
 ATTACK_KINDS = ("none", "sa", "ea", "nan", "misshaped")
 ATTACK_TARGETS = ("base", "smoothed")
 LAWS = ("piecewise_constant", "gradient")
+IMPLICIT_SCHEMES = ("radau3", "radau1", "implicit_euler")  # what the gradient law needs
 
 
 def _positive(value, key: str, where: str) -> None:
@@ -214,6 +215,14 @@ class Scenario:
                 raise ConfigError(f"{where}: route[{i}].condition must not be empty")
         for part in (self.camera, self.perception, self.attack, self.motion, self.controller):
             part.validate(where)
+        if self.controller.law == "gradient" and self.simulator.integration_scheme not in \
+                IMPLICIT_SCHEMES:
+            raise ConfigError(
+                f"{where}: controller.law = gradient needs an implicit integrator (simulator."
+                f"integration_scheme {' or '.join(IMPLICIT_SCHEMES)}; radau3 with max_step_size "
+                "0.001 and use_error_control false recommended): the gradient law's adaptation "
+                "is stiff and explicit fixed 1 ms steps diverge; "
+                f"got {self.simulator.integration_scheme!r}")
 
     @property
     def route_length_m(self) -> float:

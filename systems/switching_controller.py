@@ -12,10 +12,12 @@ Output ports: ``steering_rad`` u (rad, UNSATURATED, as :mod:`systems.l1_controll
               ``active_design_index`` the design in use, ``scheduled_speed_mps`` the grid
               speed whose parameters are in use (m/s).
 Discrete state (period T_s = settings.controller.sample_period_s, offset 0):
-  ``[s_hat (4), u_ad, active design, speed grid index, stopped (0/1), held steering (rad)]``.
+  ``[s_hat (4), u_ad, active design, speed grid index, stopped (0/1), held steering (rad)]``
+  (the gradient law: slots 0-4 unused, its state is continuous; "The gradient law" below).
 
-The law is the piecewise-constant one of :mod:`systems.l1_law` (DESIGN 4), unchanged; only its
-parameters move. At each sample t_k, with the inputs read at t_k:
+``law="piecewise_constant"`` (default): the law is the piecewise-constant one of
+:mod:`systems.l1_law` (DESIGN 4), unchanged; only its parameters move. At each sample t_k,
+with the inputs read at t_k:
 1. if ``design_index`` differs from the active design, the requested one becomes active at
    this sample (a request made in (t_{k-1}, t_k] acts at t_k; the dwell time is enforced
    upstream, in the certified-interval block);
@@ -40,7 +42,60 @@ of the new design is not the old model's prediction error. The piecewise-constan
 other memory (its estimate is recomputed from s_hat - s at every sample). A change of the
 speed grid point within a design changes the parameters only (gain scheduling).
 
-Speed: ``fast=True`` (default) evaluates the law through its affine matrices: for each
+The gradient law (``law="gradient"``, leaf :class:`SwitchingGradientL1Law`): the continuous
+law of :mod:`systems.l1_law` (``gradient_controller_derivatives``: Gamma, the projection
+operator) on the continuous state x = [q_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad],
+integrated by the simulator with the parameters of the active (design, grid point). The
+sample at T_s (a periodic unrestricted update) switches and schedules exactly by steps 1
+and 2 above, with the same ports, outputs and stop rule (stopped: the derivative is zero and
+the steering held). When the (design, grid point) changes, x is handed over
+(:meth:`SwitchingGradientL1Law.hand_over`):
+- design switch: the STEERING is kept (bumpless): u_ad becomes u - (-k_m' s + u_ff'), u the
+  old law's command and k_m', u_ff' the new design's; q_hat is reset to the measured s as
+  above; w_hat is re-expressed as the same stiffness (w = C / C_hat, so w' = w C_hat / C_hat')
+  and clipped to the new set; theta_hat and sigma_hat are kept, scaled into the new balls;
+- grid change within a design (gain scheduling): u_ad kept as the piecewise-constant law
+  does, q_hat moved so that the prediction s_hat = q_hat - V kappa e4 is the same at the new
+  grid speed, the estimates put into the new sets;
+- switch while stopped: as a design switch with u_ad kept (the held steering is what is
+  applied, and the road preview, a mean over the distance covered in the window, is NaN at
+  rest).
+Why. The steering, not u_ad: u_ad is the correction to the OLD design's nominal model (its
+C_hat, k_m, k_ff); under the new design the same u_ad gives a steering step of
+(k_m' - k_m) s + u_ff - u_ff', then is re-learnt at the filter bandwidth k (100-450 rad/s).
+Measured (Fiala plant, 60 m curve, a switch between shipped designs, then a 4 m/s^2 ramp;
+five pairs): the largest change of the steering in one 1 ms step around the switch is
+0.0002-0.013 rad, against 0.0006-0.042 rad with u_ad handed over (the piecewise-constant law:
+0.0009-0.042 rad); the 0.013 rad (sunny -> sunny+rain+snow, 0.042 rad handed over) is the new
+filter (k = 350 rad/s) moving u_ad within the first ms, not a step. Peak |e1| is the same
+to 2 mm. The estimates: they must start in their new sets (outside one, f > 1 and the
+projection's restoring rate grows like Gamma |y| f, the stiff case of the notes in
+:mod:`systems.l1_law`); keeping them or resetting them (w_hat at the centre, theta = sigma =
+0) gave the same peak |e1| to 0.1 mm and the same steering changes to 0.001 rad: they
+re-converge at the adaptation loop's rate, sqrt(Gamma b_m' P b_m) = 1 400-19 300 rad/s for
+the shipped designs, within a few ms. Keeping them is the continuous choice, and w_hat is
+re-expressed because it is one physical quantity (C); theta and sigma depend on (k_m, C_hat,
+V) and have no exact image.
+
+Numerics of the gradient law: that adaptation mode is lightly damped (real part -50 to -225 1/s
+for the shipped designs); linearised, fixed-step RK2 is stable for it only at steps below
+19-790 us, so the law DIVERGES under the driving Diagram's fixed-step RK2 at 1 ms (on the
+shipped dry_to_snow drive: NaN from its first curve on). It needs an implicit integrator:
+Radau3 with fixed 1 ms steps (SimulatorConfig ``integration_scheme="radau3"``,
+``max_step_size=0.001``, ``use_error_control=False``): the samples bound every step to T_s
+anyway; error control at accuracy 1e-4 took 2.3x the steps on a ramp with switches for a change
+of 1.5e-7 m. Cost on that ramp (Fiala plant + controller; wall s per simulated s, a loaded
+2-core machine): 0.2 for the piecewise-constant law (RK2, 1 ms), 0.75 for the gradient law
+(Radau3, fixed 1 ms: about 10 derivative evaluations per step at 22 us each, the arithmetic 5
+us of them), 2.0 with error control; implicit Euler at fixed 1 ms costs as Radau3 (1e-4 m
+apart). ``fast=True`` evaluates the derivative with :func:`gradient_derivatives_fast` (plain
+floats) and the steering from the cached command row; ``fast=False`` calls
+``l1_law.gradient_controller_derivatives`` and ``steering_command`` (the readable reference);
+tests check both agree. (A C++ ``SymbolicVectorSystem`` taking the parameters as inputs
+evaluated the derivative in 63 us, slower than the Python leaf.)
+
+Speed (piecewise-constant law): ``fast=True`` (default) evaluates the law through its affine
+matrices: for each
 (design, grid point) ``piecewise_constant_update`` and ``steering_command`` are evaluated at
 the unit vectors of [s_hat, u_ad, s, kappa (, kappa_p)] (both are affine in them, exactly),
 giving one matrix-vector product per sample. ``fast=False`` calls the law's functions at
@@ -123,9 +178,13 @@ class SwitchingL1Law(LeafSystem):
                  speed_step_mps: float = 0.1, fast: bool = True,
                  curvature_preview: bool = False):
         super().__init__()
-        if law != "piecewise_constant":
-            raise ConfigError(f"switching controller: law {law!r} is not supported; only "
-                              "'piecewise_constant' (the law run on vehicles, DESIGN 4)")
+        if law not in l1_law.LAWS:
+            raise ConfigError(f"switching controller: law {law!r} is not supported; expected "
+                              f"one of {l1_law.LAWS}")
+        if law != self.LAW:
+            raise ConfigError(f"switching controller: {type(self).__name__} runs the "
+                              f"{self.LAW!r} law, not {law!r}; SwitchingL1Controller(law="
+                              f"{law!r}) builds the leaf that runs it")
         if not designs:
             raise ConfigError("switching controller: designs is empty")
         if not 0 <= initial_design_index < len(designs):
@@ -155,8 +214,7 @@ class SwitchingL1Law(LeafSystem):
         z0[GRID] = self.grid_index(d0, v0 if v0 > 0 else self.speed_min_mps)
         z0[STOPPED] = 0.0 if v0 >= self.speed_min_mps else 1.0
         self._z = self.DeclareDiscreteState(BasicVector(z0))
-        self.DeclarePeriodicDiscreteUpdateEvent(period_sec=self.sample_period_s,
-                                                offset_sec=0.0, update=self._sample)
+        self._declare_sampling()
         self.DeclareVectorOutputPort("steering_rad", 1, self._command)
         xd = {self.xd_ticket()}
         self.DeclareVectorOutputPort(
@@ -166,7 +224,19 @@ class SwitchingL1Law(LeafSystem):
         self.DeclareVectorOutputPort("scheduled_speed_mps", 1, self._calc_scheduled_speed,
                                      prerequisites_of_calc=xd)
         self.DeclareVectorOutputPort("command_row", self.command_row_size,
-                                     self._calc_command_row, prerequisites_of_calc=xd)
+                                     self._calc_command_row,
+                                     prerequisites_of_calc=self._command_row_tickets())
+
+    LAW = "piecewise_constant"  # the law this leaf runs (SwitchingGradientL1Law: "gradient")
+
+    def _declare_sampling(self) -> None:
+        """The sample every T_s: a periodic discrete update (the law is all discrete state)."""
+        self.DeclarePeriodicDiscreteUpdateEvent(period_sec=self.sample_period_s,
+                                                offset_sec=0.0, update=self._sample)
+
+    def _command_row_tickets(self) -> set:
+        """``command_row`` depends on the discrete state only (cached between samples)."""
+        return {self.xd_ticket()}
 
     @property
     def command_row_size(self) -> int:
@@ -292,6 +362,244 @@ class SwitchingL1Law(LeafSystem):
         mine.SetDiscreteState(self.initial_state(context, s0, curvature))
 
 
+@dataclasses.dataclass(frozen=True)
+class GradientConstants:
+    """The gradient law at one (design, grid speed) as plain floats, for
+    :func:`gradient_derivatives_fast` (every entry from :class:`L1Parameters`).
+
+    The predictor's derivative is affine: ``q_hat' = predictor_rows . [q_hat, kappa, kappa_ff]
+    + b_m eta`` (``s_hat = q_hat - V kappa e4``, ``g_hat V kappa``, ``b_m k_ff V kappa_ff``
+    folded into the rows), and ``s_tilde' P b_m = p_b . (q_hat - s) - p_b[3] V kappa``.
+    """
+
+    predictor_rows: tuple  # 4 rows of 6: [A_m | -V A_m e4 + g_hat V | b_m k_ff V]
+    b_m: tuple  # (4,)
+    p_b: tuple  # (4,) P b_m
+    p_b_curvature: float  # p_b[3] V (the jump-free coordinates' term of s_tilde' P b_m)
+    gamma: float
+    filter_gain: float
+    w_centre: float
+    w_radius: float
+    theta_max: float
+    sigma_max: float
+    epsilon: float
+
+    @classmethod
+    def of(cls, p: L1Parameters) -> "GradientConstants":
+        a_m, b_m = np.asarray(p.a_m, float), np.asarray(p.b_m, float)
+        v = float(p.measured_curvature_gain)
+        rows = np.column_stack([a_m, -v * a_m[:, 3] + np.asarray(p.g_hat, float) * p.speed_mps,
+                                b_m * p.k_ff * p.speed_mps])
+        p_b = np.asarray(p.p_ad, float) @ b_m
+        return cls(predictor_rows=tuple(tuple(r) for r in rows.tolist()),
+                   b_m=tuple(b_m.tolist()), p_b=tuple(p_b.tolist()),
+                   p_b_curvature=float(p_b[3] * v), gamma=float(p.adaptation_gain),
+                   filter_gain=float(p.filter_gain), w_centre=float(p.w_centre),
+                   w_radius=float(p.w_radius), theta_max=float(p.theta_max),
+                   sigma_max=float(p.sigma_max), epsilon=float(p.projection_epsilon))
+
+
+def _projection_factor(norm2: float, theta_y: float, bound: float, eps: float) -> float:
+    """``f / |theta|^2`` where :func:`l1_law.projection_operator` is active (0 elsewhere):
+    the projected update is ``y - theta (theta' y) factor``."""
+    f = ((eps + 1.0) * norm2 - bound * bound) / (eps * bound * bound)
+    return f / norm2 if (f > 0.0 and theta_y > 0.0) else 0.0
+
+
+def gradient_derivatives_fast(c: GradientConstants, x, s, curvature: float,
+                              feedforward_curvature: float) -> np.ndarray:
+    """:func:`l1_law.gradient_controller_derivatives` in plain floats: the same equations,
+    5 us a call against 62 us (tests check both agree). ``x`` = [q_hat, w_hat, theta_hat,
+    sigma_hat, u_ad]; ``feedforward_curvature`` is kappa without the preview."""
+    q0, q1, q2, q3, w, t0, t1, t2, t3, sigma, u_ad = x.tolist()
+    s0, s1, s2, s3 = s.tolist()
+    eta = w * u_ad + t0 * s0 + t1 * s1 + t2 * s2 + t3 * s3 + sigma  # adaptive_signal
+    v = (q0, q1, q2, q3, curvature, feedforward_curvature)
+    q_dot = [sum(r_i * v_i for r_i, v_i in zip(row, v, strict=True)) + b * eta
+             for row, b in zip(c.predictor_rows, c.b_m, strict=True)]
+    p0, p1, p2, p3 = c.p_b
+    pb = (p0 * (q0 - s0) + p1 * (q1 - s1) + p2 * (q2 - s2) + p3 * (q3 - s3)
+          - c.p_b_curvature * curvature)  # s_tilde' P b_m
+    g, eps = c.gamma, c.epsilon
+    y = -pb * u_ad  # w_hat, about its set's centre
+    dw = w - c.w_centre
+    w_dot = g * (y - dw * dw * y * _projection_factor(dw * dw, dw * y, c.w_radius, eps))
+    y0, y1, y2, y3 = -pb * s0, -pb * s1, -pb * s2, -pb * s3  # theta_hat
+    theta_y = t0 * y0 + t1 * y1 + t2 * y2 + t3 * y3
+    k = theta_y * _projection_factor(t0 * t0 + t1 * t1 + t2 * t2 + t3 * t3, theta_y,
+                                     c.theta_max, eps)
+    theta_dot = [g * (y0 - t0 * k), g * (y1 - t1 * k), g * (y2 - t2 * k), g * (y3 - t3 * k)]
+    sigma_dot = g * (-pb + sigma * sigma * pb * _projection_factor(sigma * sigma, -sigma * pb,
+                                                                    c.sigma_max, eps))
+    return np.array([*q_dot, w_dot, *theta_dot, sigma_dot, -c.filter_gain * eta])
+
+
+def _into_ball(v: np.ndarray, radius: float) -> np.ndarray:
+    """``v`` scaled radially into the ball ``|v| <= radius`` (unchanged inside it)."""
+    norm = float(np.linalg.norm(v))
+    return v if norm <= radius else v * (radius / norm)
+
+
+class SwitchingGradientL1Law(SwitchingL1Law):
+    """The gradient law over a list of designs, switched and speed-scheduled at run time
+    (module docstring, "The gradient law"); the Python leaf of
+    ``SwitchingL1Controller(law="gradient")``, with the ports of :class:`SwitchingL1Law`.
+
+    Continuous state x = [q_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad]
+    (``l1_law.GRADIENT_STATE``), moving with the parameters of the active (design, grid
+    point); discrete state as :class:`SwitchingL1Law`'s with slots 0-4 unused (zero). The
+    sample every T_s is a periodic unrestricted update: it switches, schedules and hands x
+    over (:meth:`hand_over`). ``fast=True`` evaluates the derivative with
+    :func:`gradient_derivatives_fast`, ``fast=False`` with
+    :func:`l1_law.gradient_controller_derivatives` (the readable reference).
+    """
+
+    LAW = "gradient"
+    STATE_SIZE = sum(size for _, size in l1_law.GRADIENT_STATE)  # 11
+
+    def __init__(self, *, law: str = "gradient", **kwargs):
+        super().__init__(law=law, **kwargs)
+        self._gradient: dict[tuple[int, int], GradientConstants] = {}
+
+    def _declare_sampling(self) -> None:
+        self.DeclareContinuousState(self.STATE_SIZE)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(period_sec=self.sample_period_s,
+                                                    offset_sec=0.0,
+                                                    update=self._sample_gradient)
+
+    def _command_row_tickets(self) -> set:
+        return {self.xd_ticket(), self.xc_ticket()}  # u_ad is continuous state here
+
+    def constants_at(self, design_index: int, grid_index: int) -> GradientConstants:
+        """The cached :class:`GradientConstants` of a design at a grid point."""
+        key = (int(design_index), int(grid_index))
+        if key not in self._gradient:
+            self._gradient[key] = GradientConstants.of(self.law_at(*key).parameters)
+        return self._gradient[key]
+
+    def _kappas(self, context) -> tuple[float, float | None]:
+        """(kappa, kappa_p): kappa_p None without the road preview (u_ff at kappa)."""
+        kappa = float(self._kappa.Eval(context)[0])
+        return kappa, None if self._kappa_p is None else float(self._kappa_p.Eval(context)[0])
+
+    # ---------------------------------------------------------------- the law
+
+    def DoCalcTimeDerivatives(self, context, derivatives):
+        z = context.get_discrete_state(self._z).get_value()
+        if z[STOPPED]:  # stopped: no adaptation, nothing moves
+            derivatives.get_mutable_vector().SetFromVector(np.zeros(self.STATE_SIZE))
+            return
+        x = context.get_continuous_state_vector().CopyToVector()
+        s = self._s.Eval(context)
+        kappa, preview = self._kappas(context)
+        if self.fast:
+            dx = gradient_derivatives_fast(self.constants_at(z[DESIGN], z[GRID]), x, s, kappa,
+                                           kappa if preview is None else preview)
+        else:
+            dx = l1_law.gradient_controller_derivatives(
+                self.law_at(int(z[DESIGN]), int(z[GRID])).parameters, x, s, kappa,
+                preview).astype(float)
+        derivatives.get_mutable_vector().SetFromVector(dx)
+
+    def hand_over(self, old: tuple[int, int], new: tuple[int, int], x, s, curvatures,
+                  bumpless: bool = True) -> np.ndarray:
+        """The state x for the law at ``new`` = (design, grid index) when the law at ``old``
+        was running, at the measurement s and ``curvatures`` ([kappa] or [kappa, kappa_p]);
+        module docstring, "The gradient law".
+
+        Design switch: q_hat at s (the new predictor starts at the plant), w_hat the same
+        stiffness C = w_hat C_hat in the new C_hat, u_ad such that the steering command is
+        unchanged (``bumpless``; False, when stopped: u_ad kept). Grid change (same design):
+        q_hat such that s_hat is unchanged, u_ad kept (gain scheduling). Both: w_hat,
+        theta_hat, sigma_hat put into the new design's sets (clipped, radially)."""
+        law_old, law_new = self.law_at(*old), self.law_at(*new)
+        p_old, p_new = law_old.parameters, law_new.parameters
+        q, w, theta, sigma, u_ad = l1_law.unpack_gradient_state(np.asarray(x, float))
+        s = np.asarray(s, float)
+        kappa = float(curvatures[0])
+        if new[0] != old[0]:  # design switch
+            q = l1_law.predictor_memory(p_new, s, kappa)
+            w = w * (self.designs[old[0]].nominal_stiffness_n_per_rad
+                     / self.designs[new[0]].nominal_stiffness_n_per_rad)
+            if bumpless:
+                u_ad = (self._steering(law_old, u_ad, s, curvatures)
+                        - self._steering(law_new, 0.0, s, curvatures))
+        else:  # gain scheduling: the same prediction in the new jump-free coordinates
+            q = l1_law.predictor_memory(p_new, l1_law.predicted_measurement(p_old, q, kappa),
+                                        kappa)
+        w = min(max(float(w), p_new.w_centre - p_new.w_radius), p_new.w_centre + p_new.w_radius)
+        sigma = min(max(float(sigma), -p_new.sigma_max), p_new.sigma_max)
+        return np.concatenate([q, [w], _into_ball(theta, p_new.theta_max), [sigma],
+                               [float(u_ad)]])
+
+    def _sample_gradient(self, context, state) -> None:
+        z = context.get_discrete_state(self._z).CopyToVector()
+        x = context.get_continuous_state_vector().CopyToVector()
+        s = self._s.Eval(context)
+        curvatures = self._curvatures(context)
+        speed = float(self._speed.Eval(context)[0])
+        old = (int(z[DESIGN]), int(z[GRID]))
+        z[DESIGN] = self._requested_design(context)
+        if speed < self.speed_min_mps:  # stopped: no adaptation, steering held
+            new = (int(z[DESIGN]), old[1])
+            if new != old:  # the steering is held: nothing to keep continuous
+                x = self.hand_over(old, new, x, s, curvatures, bumpless=False)
+            if not z[STOPPED]:
+                z[HELD] = self._steering(self.law_at(*new), x[-1], s, curvatures)
+                z[STOPPED] = 1.0
+        else:
+            z[STOPPED] = 0.0
+            z[GRID] = self.grid_index(int(z[DESIGN]), speed)
+            new = (int(z[DESIGN]), int(z[GRID]))
+            if new != old:
+                x = self.hand_over(old, new, x, s, curvatures)
+        state.get_mutable_discrete_state(self._z).SetFromVector(z)
+        state.get_mutable_continuous_state().SetFromVector(x)
+
+    def _command(self, context, output) -> None:
+        z = context.get_discrete_state(self._z).get_value()
+        if z[STOPPED]:
+            output.SetAtIndex(0, z[HELD])
+            return
+        law = self.law_at(int(z[DESIGN]), int(z[GRID]))
+        u_ad = context.get_continuous_state_vector().GetAtIndex(self.STATE_SIZE - 1)
+        if not self.fast:
+            output.SetAtIndex(0, self._steering(law, u_ad, self._s.Eval(context),
+                                                self._curvatures(context)))
+            return
+        c = law.command
+        kappa, preview = self._kappas(context)
+        u = c[0] * u_ad + float(c[1:5] @ self._s.Eval(context)) + c[5] * kappa + c[-1]
+        output.SetAtIndex(0, float(u if preview is None else u + c[6] * preview))
+
+    def _calc_command_row(self, context, output) -> None:
+        z = context.get_discrete_state(self._z).get_value()
+        row = np.zeros(self.command_row_size)
+        if z[STOPPED]:
+            row[-1] = z[HELD]
+        else:
+            c = self.law_at(int(z[DESIGN]), int(z[GRID])).command
+            u_ad = context.get_continuous_state_vector().GetAtIndex(self.STATE_SIZE - 1)
+            row[:-1] = c[1:-1]
+            row[-1] = c[0] * u_ad + c[-1]
+        output.SetFromVector(row)
+
+    # ---------------------------------------------------------------- initial state
+
+    def initial_state(self, context, s0, curvature: float = 0.0) -> np.ndarray:
+        """Continuous state with the predictor at s0 (at curvature kappa), w_hat at its set's
+        centre, theta = sigma = u_ad = 0 (``l1_law.gradient_initial_state``, as the fixed
+        controller)."""
+        z = self.GetMyContextFromRoot(context).get_discrete_state(self._z).get_value()
+        p = self.law_at(int(z[DESIGN]), int(z[GRID])).parameters
+        return l1_law.gradient_initial_state(p, s0, curvature)
+
+    def set_initial_state(self, context, s0, curvature: float = 0.0) -> None:
+        """Write :meth:`initial_state` into this system's context within the root ``context``."""
+        mine = self.GetMyMutableContextFromRoot(context)
+        mine.SetContinuousState(self.initial_state(context, s0, curvature))
+
+
 def _row_product_system(n_curvatures: int = 1) -> SymbolicVectorSystem:
     """``u = r[0:4] . s + r[4:-1] . kappas + r[-1]`` for inputs [r (5 + n), s (4), kappas (n)]
     in C++; kappas = [kappa] or, with the road preview, [kappa, kappa_p] (n = 2).
@@ -318,6 +626,11 @@ class SwitchingL1Controller(Diagram):
     only at samples). ``fast=False`` exports the law's Python output, which calls
     ``l1_law.steering_command`` directly (the readable reference). Same ports as the leaf
     (``curvature_preview=True``: also ``curvature_preview_per_m``, the road preview).
+
+    ``law="gradient"``: the leaf is :class:`SwitchingGradientL1Law` and its Python steering
+    output is exported (u_ad is continuous state, so the row would change at every
+    integrator stage as well); simulate it with an implicit integrator (module docstring,
+    "Numerics of the gradient law").
     """
 
     def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
@@ -327,7 +640,8 @@ class SwitchingL1Controller(Diagram):
                  curvature_preview: bool = False):
         super().__init__()
         builder = DiagramBuilder()
-        self._law = builder.AddNamedSystem("switching_l1_law", SwitchingL1Law(
+        leaf = SwitchingGradientL1Law if law == "gradient" else SwitchingL1Law
+        self._law = builder.AddNamedSystem("switching_l1_law", leaf(
             vehicle=vehicle, designs=designs, settings=settings, law=law,
             initial_design_index=initial_design_index, initial_speed_mps=initial_speed_mps,
             speed_step_mps=speed_step_mps, fast=fast, curvature_preview=curvature_preview))
@@ -335,7 +649,7 @@ class SwitchingL1Controller(Diagram):
             (["curvature_preview_per_m"] if curvature_preview else [])
         for name in ("state", *curvature_ports, "speed_mps", "design_index"):
             builder.ExportInput(self._law.GetInputPort(name), name)
-        if fast:
+        if fast and law != "gradient":
             n = len(curvature_ports)
             product = builder.AddNamedSystem("steering_from_row", _row_product_system(n))
             mux = builder.AddSystem(Multiplexer([5 + n, 4] + [1] * n))
