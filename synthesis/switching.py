@@ -409,8 +409,9 @@ def chatter_bound(switch_times_s, average_dwell_s: float) -> float:
 
 def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) -> dict:
     """What the certificate says about one drive's switching signal (the ``drive --json``
-    fields): the method, the certified decay and average dwell, and for "dwell" the chatter bound ``N_0`` at ``tau_a = 2 dwell_time_s`` (then the reference
-    loops decay at ``lambda_0 / 2`` at least) with the growth factor ``mu^N_0`` it allows."""
+    fields): the method, the certified decay and average dwell, and for "dwell" the chatter
+    bound ``N_0`` at ``tau_a = 2 dwell_time_s`` (then the reference loops decay at
+    ``lambda_0 / 2`` at least) with the growth factor ``mu^N_0`` it allows."""
     times = list(switch_times_s)
     out = {"switching_method": certificate.method,
            "switching_decay_per_s": certificate.decay_rate_per_s,

@@ -439,7 +439,8 @@ class LongitudinalMotion(Diagram):
 
     @property
     def combines(self) -> bool:
-        """Decisions are combined over ``window_m`` (:meth:`SpeedProfile.with_combined_decision`)."""
+        """Decisions are combined over ``window_m``
+        (:meth:`SpeedProfile.with_combined_decision`)."""
         return self._meet is not None
 
     def design_command(self, design_index: int) -> float:
