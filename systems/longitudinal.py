@@ -179,7 +179,7 @@ class SpeedProfile:
             if value != env and d_i != env and meet[(value, d_i)] == env:
                 contradiction = True  # the pairs exclude what this look certified: one failed
             stretches.append((l_i, value))
-        if contradiction:  # taken as an abstention: the stretches already decided stand
+        if contradiction and d_r != env:  # taken as an abstention: the decided stretches stand
             return self.with_combined_decision(r, env, time_s, arc_length_m, window_m=window_m,
                                                join=join, meet=meet, command_of=command_of,
                                                envelope_index=env)
@@ -188,7 +188,8 @@ class SpeedProfile:
         start = stretches[0][0] if stretches else r
         kept = [e for e in self.entries if e[0] < start]
         for position, value in [*stretches, (r, d_r)]:
-            if (kept[-1][1], kept[-1][2]) != (command_of(value), value):
+            # (kept is empty when the window reaches behind the entry in force at the car)
+            if not kept or (kept[-1][1], kept[-1][2]) != (command_of(value), value):
                 kept.append((float(position), float(command_of(value)), int(value)))
         passed = [i for i, e in enumerate(kept) if e[0] <= arc_length_m]
         kept = kept[passed[-1]:]  # drop passed entries except the one in force

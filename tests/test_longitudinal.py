@@ -259,3 +259,36 @@ def test_the_supported_speed_brakes_to_the_floor_on_a_frontier_that_has_not_move
     assert (v**2 - 6.23**2) / 7.2 == pytest.approx(60.0 - 2.0 - tau * v)
     assert look_ahead_needed_m(v, 5.0, decel_mps2=3.6, margin_m=2.0,
                                floor_speed_mps=6.23) == pytest.approx(60.0)
+
+
+def test_a_window_longer_than_the_look_ahead_reaches_behind_the_car():
+    # 60 m window, the car at 45 m already past the first look points: the stretches behind
+    # it may be rewritten, the one in force at the car stays decided.
+    join, meet = _lattice()
+    prof = SpeedProfile(((-math.inf, 6.0, 5),))
+    for k, (look, design, x) in enumerate([(40.0, 0, 0.0), (42.0, 0, 44.0), (44.0, 5, 45.0),
+                                            (46.0, 0, 45.5)]):
+        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x, window_m=60.0,
+                                           join=join, meet=meet,
+                                           command_of=lambda d: RANGE_SPEEDS[d],
+                                           envelope_index=5)
+    assert prof.in_force(45.5) == (19.0, 0) and prof.in_force(47.0) == (19.0, 0)
+
+
+@pytest.mark.parametrize("window_m", [30.0, 60.0])
+def test_any_sequence_of_decisions_builds_a_sorted_profile_of_lattice_ranges(window_m):
+    # Random decisions every 1-4 m (the car 40 m behind): the profile is always built (no
+    # error, no endless retry on contradictions) and sorted, and every entry is a range of
+    # the lattice.
+    join, meet = _lattice()
+    rng = np.random.default_rng(7)
+    prof, look = SpeedProfile(((-math.inf, 6.0, 5),)), 40.0
+    for k in range(400):
+        look += float(rng.uniform(1.0, 4.0))
+        prof = prof.with_combined_decision(look, int(rng.integers(0, 6)), 0.1 * (k + 1),
+                                           look - 40.0, window_m=window_m, join=join,
+                                           meet=meet, command_of=lambda d: RANGE_SPEEDS[d],
+                                           envelope_index=5)
+        positions = [e[0] for e in prof.entries]
+        assert positions == sorted(positions)
+        assert all(e[2] in range(6) and e[1] == RANGE_SPEEDS[e[2]] for e in prof.entries[1:])
