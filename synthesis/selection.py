@@ -44,6 +44,12 @@ def envelope_design_index(designs: Sequence[ControllerDesign], conditions: Condi
     return design_index_for_labels(designs, conditions.preset(preset).labels)
 
 
+def _label_spans(designs: Sequence[ControllerDesign], family: list[str]) -> list[tuple[int, int]]:
+    """(first, last) place of each design's label range in the family's friction order."""
+    places = [[family.index(label) for label in d.labels] for d in designs]
+    return [(min(p), max(p)) for p in places]
+
+
 def join_design_indices(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
                         preset: str) -> dict[tuple[int, int], int]:
     """For every pair (i, j) of the preset's designs, the index of the design whose label range
@@ -51,10 +57,7 @@ def join_design_indices(designs: Sequence[ControllerDesign], conditions: Conditi
     table that holds every stiffness either design holds (the join). ``designs`` as
     :func:`preset_designs` returns them."""
     family = list(conditions.preset(preset).labels)
-    span = []
-    for d in designs:
-        places = [family.index(label) for label in d.labels]
-        span.append((min(places), max(places)))
+    span = _label_spans(designs, family)
     join = {}
     for i, (a_lo, a_hi) in enumerate(span):
         for j, (b_lo, b_hi) in enumerate(span):
@@ -72,10 +75,7 @@ def meet_design_indices(designs: Sequence[ControllerDesign], conditions: Conditi
     returns them."""
     family = list(conditions.preset(preset).labels)
     envelope = design_index_for_labels(designs, family)
-    span = []
-    for d in designs:
-        places = [family.index(label) for label in d.labels]
-        span.append((min(places), max(places)))
+    span = _label_spans(designs, family)
     meet = {}
     for i, (a_lo, a_hi) in enumerate(span):
         for j, (b_lo, b_hi) in enumerate(span):

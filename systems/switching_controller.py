@@ -331,6 +331,10 @@ class SwitchingL1Law(LeafSystem):
         output.SetAtIndex(0, self._steering(law, z[U_AD], self._s.Eval(context),
                                             self._curvatures(context)))
 
+    def _u_ad(self, context, z) -> float:
+        """The adaptive steering u_ad (rad): a discrete state entry of this law."""
+        return z[U_AD]
+
     def _calc_command_row(self, context, output) -> None:
         z = context.get_discrete_state(self._z).get_value()
         row = np.zeros(self.command_row_size)
@@ -339,7 +343,7 @@ class SwitchingL1Law(LeafSystem):
         else:
             c = self.law_at(int(z[DESIGN]), int(z[GRID])).command
             row[:-1] = c[1:-1]
-            row[-1] = c[0] * z[U_AD] + c[-1]
+            row[-1] = c[0] * self._u_ad(context, z) + c[-1]
         output.SetFromVector(row)
 
     def _calc_scheduled_speed(self, context, output) -> None:
@@ -572,17 +576,9 @@ class SwitchingGradientL1Law(SwitchingL1Law):
         u = c[0] * u_ad + float(c[1:5] @ self._s.Eval(context)) + c[5] * kappa + c[-1]
         output.SetAtIndex(0, float(u if preview is None else u + c[6] * preview))
 
-    def _calc_command_row(self, context, output) -> None:
-        z = context.get_discrete_state(self._z).get_value()
-        row = np.zeros(self.command_row_size)
-        if z[STOPPED]:
-            row[-1] = z[HELD]
-        else:
-            c = self.law_at(int(z[DESIGN]), int(z[GRID])).command
-            u_ad = context.get_continuous_state_vector().GetAtIndex(self.STATE_SIZE - 1)
-            row[:-1] = c[1:-1]
-            row[-1] = c[0] * u_ad + c[-1]
-        output.SetFromVector(row)
+    def _u_ad(self, context, z) -> float:
+        """u_ad lives in the continuous state (its last entry)."""
+        return context.get_continuous_state_vector().GetAtIndex(self.STATE_SIZE - 1)
 
     # ---------------------------------------------------------------- initial state
 
