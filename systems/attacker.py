@@ -9,7 +9,8 @@ model (``target="smoothed"``: SmoothAdv, the expectation over ``noise_draws`` dr
 pixel NaN) and ``misshaped`` (the top half of the image only, [3, H/2, W]).
 
 Stateless: the output is cached on the input, so each attack runs once per new frame. The
-attack of tick k draws its random start and noise from the stream ``(seed, ATTACK, k)``.
+attack of tick k draws its random start and noise from the stream ``attack`` (k) of the seed
+(:mod:`drake_cert.certification.seeds`).
 A frame that is already bad (NaN, wrong rank) is passed through unchanged by sa/ea.
 """
 
@@ -21,8 +22,8 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from drake_cert.certification.attacks import AttackSettings, attack
+from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.errors import ConfigError
-from systems import streams
 from systems.camera import CameraFrame
 
 KINDS = ("none", "sa", "ea", "nan", "misshaped")
@@ -40,7 +41,7 @@ class Attacker(LeafSystem):
             needed for sa/ea.
         sigma: noise level of the smoothed model (used when ``target="smoothed"``).
         task: "classify" or "regress" (what ``model`` outputs).
-        seed: scenario seed; tick k uses the stream (seed, ATTACK, k).
+        seed: scenario seed; tick k uses its stream ``attack`` (k).
         steps, noise_draws, step_size: PGD settings (:class:`AttackSettings`).
         frame_size: side of the camera's frames (model value of the ports).
     """
@@ -90,7 +91,7 @@ class Attacker(LeafSystem):
         if not (x.dim() == 3 and bool(torch.isfinite(x).all())) or self.eps == 0:
             return frame
         settings = dataclasses.replace(
-            self._settings, seed=streams.stream_seed(self.seed, streams.ATTACK, frame.tick))
+            self._settings, seed=child_seed(self.seed, Purpose.ATTACK, frame.tick))
         adv = attack(self.model, x[None].float(), self.kind, settings, task=self.task,
                      sigma=self.sigma)[0]
         return dataclasses.replace(frame, image=adv, attack=self.kind,

@@ -5,9 +5,10 @@ camera reads the car's arc length s, looks at the route point ``p = s + look_ahe
 renders one frame of that point's segment: the procedural generator of the perception preset
 (``drake_cert.perception.frames.render_frames``) draws the segment's condition with the
 severity of the segment's TRUE stiffness (``severity_from_stiffness``), from the random stream
-``(seed, CAMERA, k)``. With ``frames_dir`` a user's class-per-folder image of the segment's
-condition is drawn from the same stream instead. The frame and its truth (label, stiffness,
-friction of the seen segment) are held in abstract state until the next tick.
+``camera`` (k) of the seed (:mod:`drake_cert.certification.seeds`). With ``frames_dir`` a user's
+class-per-folder image of the segment's condition is drawn from the same stream instead. The
+frame and its truth (label, stiffness, friction of the seen segment) are held in abstract state
+until the next tick.
 """
 
 import dataclasses
@@ -17,6 +18,7 @@ import torch
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
+from drake_cert.certification.seeds import Purpose, child_rng, child_seed
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from drake_cert.perception.datasets import load_image_folder
@@ -26,7 +28,6 @@ from drake_cert.perception.frames import (
     severity_from_stiffness,
     style_for,
 )
-from systems import streams
 from systems.route import Route
 
 
@@ -113,8 +114,7 @@ class CameraSource(LeafSystem):
             cond = self._conditions[seg.condition]
             severity = severity_from_stiffness(
                 torch.tensor([seg.stiffness_n_per_rad], dtype=torch.float64), *cond.interval)
-            gen = torch.Generator().manual_seed(streams.stream_seed(self.seed, streams.CAMERA,
-                                                                    tick))
+            gen = torch.Generator().manual_seed(child_seed(self.seed, Purpose.CAMERA, tick))
             image = render_frames(style_for(seg.condition), severity.float(), generator=gen,
                                   size=self.frame_size, contrast=self._contrast)[0]
         return CameraFrame(image=image, time_s=float(time_s), tick=int(tick),
@@ -124,7 +124,7 @@ class CameraSource(LeafSystem):
 
     def _folder_image(self, label_index: int, tick: int) -> torch.Tensor:
         candidates = torch.nonzero(self._folder.labels == label_index).flatten()
-        rng = streams.stream_rng(self.seed, streams.CAMERA, tick)
+        rng = child_rng(self.seed, Purpose.CAMERA, tick)
         return self._folder.images[int(candidates[rng.integers(len(candidates))])].clone()
 
     def tick_of(self, time_s: float) -> int:

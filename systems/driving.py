@@ -1,4 +1,4 @@
-"""The certified closed loop: camera frame to steering in one Drake Diagram (DESIGN 6, issue 7).
+"""The certified closed loop: camera frame to steering in one Drake Diagram (DESIGN 6).
 
     longitudinal --arc length--> camera --frame--> attacker --frame--> perception smoothing
          ^  |                                                               | perception
@@ -59,6 +59,7 @@ from pydrake.systems.primitives import LogVectorOutput, Saturation
 from drake_cert.certification.backends import resolve_backend
 from drake_cert.certification.intervals import candidate_ranges
 from drake_cert.certification.sampler import resolve_precision
+from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
@@ -68,7 +69,6 @@ from synthesis.selection import (
     meet_design_indices,
     preset_designs,
 )
-from systems import streams
 from systems.attacker import Attacker
 from systems.camera import CameraSource
 from systems.certified_interval import CertifiedInterval
@@ -181,7 +181,7 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
         MedianSmoothedRegressor(model, p.sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
         cal.labels.tolist(), n=p.calibration_n, batch_size=min(p.batch_size, p.calibration_n),
         alpha_m=p.alpha_m, alpha_c=p.alpha_c,
-        seed=streams.stream_seed(scenario.seed, streams.CALIBRATION))
+        seed=child_seed(scenario.seed, Purpose.REGRESSION_CALIBRATION))
     return calib.beta
 
 
@@ -198,8 +198,8 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
     classifier = SmoothedClassifier(model, len(conditions.preset(p.preset).labels), p.sigma)
     return calibrate_robust_conformal(classifier, cal.images, cal.labels.tolist(), n=p.n,
                                       batch_size=p.batch_size,
-                                      root_seed=streams.stream_seed(scenario.seed,
-                                                                    streams.CALIBRATION))
+                                      root_seed=child_seed(scenario.seed,
+                                                           Purpose.CONFORMAL_CALIBRATION))
 
 
 def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable,
@@ -311,7 +311,7 @@ def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sig
     return evaluated_model(model, backend=p.backend, quantization=p.quantization,
                            precision=resolve_precision(p.precision), calibration_frames=frames,
                            sigma=max(sigma, 1e-3),  # base f (sigma 0): near-clean frames
-                           seed=streams.stream_seed(scenario.seed, streams.CALIBRATION))
+                           seed=child_seed(scenario.seed, Purpose.QUANTIZATION_CALIBRATION))
 
 
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,

@@ -19,7 +19,8 @@ tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult
 
 A frame that is not a finite float [3, H, W] image in [0, 1] of the expected size gives
 ``frame_ok = False`` and the reason in ``error`` (never an exception, never a prediction).
-The certificate of tick k draws its noise from the stream ``(seed, CERTIFICATE, k)``.
+The certificate of tick k draws its selection samples from the stream ``selection`` (k) of the
+seed and its estimation samples from ``estimation`` (k) (:mod:`drake_cert.certification.seeds`).
 Cost per tick: n0 + n forward passes of the model with a fixed-n certificate; a sequential
 decision draws between a few dozen and n (``PerceptionResult.samples``).
 """
@@ -40,9 +41,9 @@ from drake_cert.certification.classifier import (
 )
 from drake_cert.certification.regressor import MedianSmoothedRegressor
 from drake_cert.certification.sampler import check_frame
+from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import look_plan, percentile_bound_indices
 from drake_cert.errors import CertificationError, ConfigError
-from systems import streams
 from systems.camera import CameraFrame
 
 MODES = ("certified", "base")
@@ -108,7 +109,7 @@ class PerceptionSmoothing(LeafSystem):
         sigma: noise level of the smoothing (pixel units); unused in base mode.
         n0, n, alpha, batch_size: CERTIFY's settings (n0 unused for regression).
         rate_hz: camera rate; offset_s: update offset (default a quarter period).
-        seed: scenario seed (stream CERTIFICATE per tick).
+        seed: scenario seed (streams ``selection`` and ``estimation`` per tick).
         label_names: the classifier's labels (grippiest first); their count is K.
         eps: regression budget of the median bounds (L2, pixel units).
         frame_size: expected frames are [3, frame_size, frame_size].
@@ -197,7 +198,8 @@ class PerceptionSmoothing(LeafSystem):
         if problem:
             return dataclasses.replace(base, frame_ok=False, error=problem)
         x = frame.image.float()
-        seed = streams.stream_seed(self.seed, streams.CERTIFICATE, frame.tick)
+        seed = child_seed(self.seed, Purpose.ESTIMATION, frame.tick)
+        selection_seed = child_seed(self.seed, Purpose.SELECTION, frame.tick)
         try:
             if self.task == "classify":
                 with torch.inference_mode():
@@ -210,13 +212,11 @@ class PerceptionSmoothing(LeafSystem):
                         ranges = _holding(ranges)
                     d = self._smooth.decide(
                         x, self.eps, self.alpha, self.n, self.batch_size, ranges,
-                        seed=seed, selection_n=self.n0,
-                        selection_seed=streams.stream_seed(self.seed, streams.SELECTION,
-                                                           frame.tick))
+                        seed=seed, selection_n=self.n0, selection_seed=selection_seed)
                     return dataclasses.replace(base, base_label=base_label, decision=d,
                                                samples=d.samples)
                 cert = self._smooth.certify(x, self.n0, self.n, self.alpha, self.batch_size,
-                                            seed=seed)
+                                            seed=seed, selection_seed=selection_seed)
                 return dataclasses.replace(base, base_label=base_label, certificate=cert,
                                            samples=self.n0 + self.n)
             if self.mode == "base":

@@ -1,7 +1,8 @@
 """A driving route: segments of given length, curvature and road condition (DESIGN 6).
 
 Each segment draws its true cornering stiffness per tire uniformly in its condition's
-interval ``[C_lo, C_hi]`` (N/rad; deterministic by seed, stream ``systems.streams.ROUTE``)
+interval ``[C_lo, C_hi]`` (N/rad; deterministic by seed, stream ``route`` (segment) of the
+seed, :mod:`drake_cert.certification.seeds`)
 and takes its condition's friction coefficient mu from the conditions table. Curvature
 (1/m, > 0 left turn) is constant on a segment and ramps linearly over ``transition_m``
 centred at each boundary where it changes (a clothoid); the ramp is shortened to half of
@@ -20,9 +21,9 @@ from collections.abc import Sequence
 import numpy as np
 from pydrake.systems.framework import BasicVector, LeafSystem
 
+from drake_cert.certification.seeds import Purpose, child_rng
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
-from systems import streams
 
 POSE_STEP_M = 0.5  # arc-length step of the centre-line integration (m)
 
@@ -100,7 +101,7 @@ class Route:
                                   f"preset {preset!r} ({', '.join(labels)})")
             cond = conditions.condition(spec.condition)
             lo, hi = cond.interval
-            u = streams.stream_rng(seed, streams.ROUTE, i).uniform()
+            u = child_rng(seed, Purpose.ROUTE, i).uniform()
             segments.append(RouteSegment(
                 start_m=start, length_m=float(spec.length_m),
                 curvature_per_m=float(spec.curvature_per_m), condition=spec.condition,

@@ -8,14 +8,9 @@ import time
 import pytest
 
 from drake_cert.cli import main
+from drake_cert.experiments.claims import preset_claims
 from drake_cert.experiments.reproduce import recompute_frame
-from drake_cert.experiments.reproduce_config import (
-    CALIBRATION,
-    CELL,
-    FRAME_CHOICE,
-    ReproduceConfig,
-    seed_of,
-)
+from drake_cert.experiments.reproduce_config import ReproduceConfig, cell_seed
 from drake_cert.experiments.tables import COLUMNS
 
 QUICK_ARGS = ["reproduce", "--quick", "--no-plots"]
@@ -39,8 +34,8 @@ def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
     presets = {r["preset"] for r in rows}
     assert presets == {"carla-like", "rtk-like", "robotcar-like"}
     tables = {r["table"] for r in rows}
-    assert {"f_clean", "f_sa", "f_ea", "g_clean", "g_sa", "g_ea", "f_reg_clean", "h_sa",
-            "h_ea"} <= tables
+    assert {"f_clean", "f_sa", "f_ea", "g_clean", "g_sa", "g_ea", "g_conformal_clean",
+            "g_conformal_sa", "g_conformal_ea", "f_reg_clean", "h_sa", "h_ea"} <= tables
     for r in rows:
         assert int(r["frames"]) == ReproduceConfig.quick().frames
         assert 0.0 <= float(r["instability_pct"]) <= 100.0
@@ -50,23 +45,35 @@ def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
 
 def test_the_certified_pipeline_never_leaves_the_lane_where_its_interval_covers(quick_local):
     for r in read_csv(quick_local / "frames.csv"):
-        if r["pipeline"] == "g" and r["interval_covers"] == "True":
+        if r["pipeline"] in ("g", "g_conformal") and r["interval_covers"] == "True":
             assert r["left_lane"] == "False", r
 
 
-def test_a_frame_recomputed_alone_gives_the_same_rows(quick_local):
-    config = ReproduceConfig.quick()
+def test_a_frame_recomputed_alone_in_a_smaller_run_gives_the_same_rows(quick_local):
+    """One preset, no regression, no g_conformal: each cell draws the noise it draws in the full
+    run (cell seeds are keyed by what the cell is, not by its place in the run's list)."""
+    import dataclasses
+
+    config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",),
+                                 regression=False, conformal=False)
     alone = recompute_frame(config, "rtk-like", 1)
-    full = [r for r in read_csv(quick_local / "frames.csv")
-            if r["preset"] == "rtk-like" and r["position"] == "1"]
-    assert len(alone) == len(full)
-    for a, f in zip(alone, full, strict=True):
+    full = {(r["pipeline"], r["sigma"], r["attack"], r["eps"]): r
+            for r in read_csv(quick_local / "frames.csv")
+            if r["preset"] == "rtk-like" and r["position"] == "1"}
+    assert {a["pipeline"] for a in alone} == {"f", "g"}
+    for a in alone:
+        f = full[(a["pipeline"], f"{a['sigma']:.6g}", a["attack"], f"{a['eps']:.6g}")]
+        assert str(a["predicted"]) == f["predicted"]
+        assert f"{a['certificate']:.6g}" == f["certificate"]
         assert f"{a['velocity_mps']:.6g}" == f["velocity_mps"]
         assert f"{a['interval_lo']:.6g}" == f["interval_lo"]
         assert str(a["left_lane"]) == f["left_lane"]
         assert a["seed"] == f["seed"]
 
 
+# A real loopback cluster checks the same byte identity in the main suite
+# (tests/test_ray_cluster.py); the local Ray with two workers runs with the slow tests.
+@pytest.mark.slow
 def test_ray_with_two_workers_gives_identical_results(quick_local, tmp_path):
     pytest.importorskip("ray")
     assert main([*QUICK_ARGS, "--out", str(tmp_path), "--executor", "ray",
@@ -75,17 +82,25 @@ def test_ray_with_two_workers_gives_identical_results(quick_local, tmp_path):
     assert (tmp_path / "frames.csv").read_text() == (quick_local / "frames.csv").read_text()
 
 
-def test_no_two_streams_share_a_seed():
-    from systems import streams
+def test_no_two_streams_share_a_seed_and_both_g_pipelines_share_their_noise():
+    from drake_cert.certification.seeds import Purpose, child_seed
+    from drake_cert.experiments.reproduce_config import calibration_seed, noise_cell
 
-    config = ReproduceConfig.quick()
-    seeds = [seed_of(config, p, FRAME_CHOICE) for p in range(3)]
-    seeds += [seed_of(config, p, CALIBRATION, s) for p in range(3) for s in range(3)]
-    cells = [seed_of(config, p, CELL, c) for p in range(3) for c in range(len(config.cells()))]
-    seeds += cells
-    seeds += [streams.stream_seed(cell, purpose, frame) for cell in cells for frame in range(50)
-              for purpose in (streams.ATTACK, streams.CERTIFICATE)]
+    config = ReproduceConfig()
+    presets = config.presets
+    cells = config.cells()
+    owners = {p: {noise_cell(c) for c in cells} for p in presets}
+    roots = [cell_seed(config, p, c) for p in presets for c in sorted(owners[p])]
+    seeds = roots + [child_seed(root, purpose, frame) for root in roots for frame in range(5)
+                     for purpose in (Purpose.ATTACK, Purpose.SELECTION, Purpose.ESTIMATION)]
+    seeds += [calibration_seed(config, purpose, p, s) for p in presets for s in config.sigmas
+              for purpose in (Purpose.REGRESSION_CALIBRATION, Purpose.CONFORMAL_CALIBRATION)]
     assert len(set(seeds)) == len(seeds)
+    for p in presets:
+        for pipeline, sigma, attack, eps in cells:
+            if pipeline == "g_conformal":  # one attack and one certificate, two intervals
+                assert cell_seed(config, p, (pipeline, sigma, attack, eps)) == \
+                    cell_seed(config, p, ("g", sigma, attack, eps))
 
 
 def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
@@ -117,26 +132,33 @@ def test_an_unreachable_cluster_address_is_refused_at_once(tmp_path, capsys, add
     assert time.perf_counter() - start < 10
 
 
-def test_reproduce_runs_g_through_the_conformal_interval_when_asked():
-    """12 calibration frames per label are too few for alpha_c = 0.008 (124 needed): every
-    label is then in the conformal set, so every g interval is the envelope -- which the
-    safe-set interval of a confidently classified frame never is."""
-    import dataclasses
-
+def test_both_intervals_read_the_same_certificates_in_one_run(quick_local):
+    """g_conformal reads g's certificate of the same attacked frame (same predicted label on
+    every frame and cell). The quick run's 4 calibration frames per label are too few for
+    alpha_c = 0.008 (124 needed): every label is then in the conformal set, so every
+    g_conformal interval is the envelope -- which the safe-set interval of a confidently
+    classified frame never is."""
     from drake_cert.config import load_conditions
 
-    config = dataclasses.replace(ReproduceConfig.quick(), presets=("carla-like",),
-                                 interval="conformal", conformal_per_class=12, conformal_n=100,
-                                 regression=False)
-    envelope = load_conditions().envelope("carla-like")
-    rows = [r for r in recompute_frame(config, "carla-like", 0) if r["pipeline"] == "g"]
-    assert rows
-    for r in rows:
-        assert (r["interval_lo"], r["interval_hi"]) == tuple(envelope), r
-        assert r["interval_lo"] <= r["stiffness_n_per_rad"] <= r["interval_hi"]
-    safe_set = recompute_frame(dataclasses.replace(config, interval="safe_set"), "carla-like", 0)
-    assert any((r["interval_lo"], r["interval_hi"]) != tuple(envelope)
-               for r in safe_set if r["pipeline"] == "g")
+    conditions = load_conditions()
+    rows = read_csv(quick_local / "frames.csv")
+    g = {(r["preset"], r["position"], r["sigma"], r["attack"], r["eps"]): r
+         for r in rows if r["pipeline"] == "g"}
+    conformal = [r for r in rows if r["pipeline"] == "g_conformal"]
+    assert len(conformal) == len(g)
+    for r in conformal:
+        twin = g[(r["preset"], r["position"], r["sigma"], r["attack"], r["eps"])]
+        assert r["predicted"] == twin["predicted"] and r["seed"] == twin["seed"]
+        envelope = conditions.envelope(r["preset"])
+        assert (float(r["interval_lo"]), float(r["interval_hi"])) == tuple(envelope), r
+    assert any((float(r["interval_lo"]), float(r["interval_hi"]))
+               != tuple(conditions.envelope(r["preset"])) for r in g.values())
+
+
+def test_the_interval_option_is_gone_with_a_pointer_to_the_new_pipeline(tmp_path, capsys):
+    assert main(["reproduce", "--quick", "--interval", "conformal", "--out", str(tmp_path)]) == 2
+    err = capsys.readouterr().err
+    assert "g_conformal" in err and len(err.strip().splitlines()) == 1
 
 
 class CountingExecutor:
@@ -161,14 +183,17 @@ def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tm
     computed, and the rows equal those of the uninterrupted run."""
     import dataclasses
 
+    from drake_cert.experiments.calibrations import conformal_sigmas
     from drake_cert.experiments.reproduce import run_reproduction
     from drake_cert.experiments.run_store import RunStore
 
     config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",))
+    calibrations = len(config.sigmas) + len(conformal_sigmas(config))
     store = RunStore(tmp_path / "store")
     first = CountingExecutor()
-    rows = run_reproduction(config, first, store=store, stop=lambda: first.ran >= 4)
-    assert {r["position"] for r in rows} == {0}  # 3 betas + 1 frame, then stopped
+    rows = run_reproduction(config, first, store=store,
+                            stop=lambda: first.ran >= calibrations + 1)
+    assert {r["position"] for r in rows} == {0}  # the calibrations + 1 frame, then stopped
     again = CountingExecutor()
     rows = run_reproduction(config, again, store=store)
     assert again.ran == 1
@@ -184,20 +209,27 @@ def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tm
     assert run_reproduction(other, CountingExecutor(), store=store, stop=lambda: True) == []
 
 
-def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(quick_local,
-                                                                               tmp_path, capsys):
+def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(
+        quick_local, tmp_path, capsys, monkeypatch):
+    """On a machine whose "auto" means the other precision (as a CPU without native bf16
+    does for a bf16 store), --from-store reads the frames in the precision they were made in."""
     import shutil
 
     copy = tmp_path / "copy"
     shutil.copytree(quick_local, copy)
     (copy / "results.csv").unlink()
+    made_in = json.loads((quick_local / "meta.json").read_text())["config"]["precision"]
+    monkeypatch.setenv("DRAKE_CERT_PRECISION", "bf16" if made_in == "fp32" else "fp32")
     assert main([*QUICK_ARGS, "--out", str(copy), "--from-store"]) == 0
+    assert json.loads((copy / "meta.json").read_text())["config"]["precision"] == made_in
+    assert (copy / "frames.csv").read_text() == (quick_local / "frames.csv").read_text()
     assert (copy / "results.csv").read_text() == (quick_local / "results.csv").read_text()
     assert "g inside its certificates" in (copy / "claims.md").read_text()
     # The printed summary carries the claims' verdicts, as claims.json states them.
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     claims = json.loads((copy / "claims.json").read_text())
-    assert printed["claims_hold"] == {p: c["holds"] for p, c in claims.items()}
+    assert list(claims)[:2] == ["headline", "truth_conditioned_diagnostic"]  # they lead
+    assert printed["claims_hold"] == {p: c["holds"] for p, c in preset_claims(claims).items()}
     assert set(printed["claims_hold"]) == {"carla-like", "rtk-like", "robotcar-like"}
     assert main([*QUICK_ARGS, "--out", str(tmp_path / "empty"), "--from-store"]) == 2
     assert "holds no frame" in capsys.readouterr().err
@@ -213,7 +245,6 @@ def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tm
     from drake_cert.experiments.run_store import RunStore
 
     config = dataclasses.replace(ReproduceConfig.quick(), presets=("rtk-like",),
-                                 interval="conformal", conformal_per_class=12, conformal_n=100,
                                  regression=False)
     calibrations = len(conformal_sigmas(config))
     store = RunStore(tmp_path / "store")
@@ -225,3 +256,93 @@ def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tm
     assert again.ran == 1  # the second frame; no calibration
     alone = recompute_frame(config, "rtk-like", 1)
     assert [r for r in rows if r["position"] == 1] == alone
+
+
+def _nudged(designs, factor: float = 1.0 + 1e-9, field=None, labels=None):
+    """The design table with every float multiplied by ``factor`` (or only ``field`` of the
+    design of ``labels``), as another CPU's last digits would move it."""
+    import dataclasses
+
+    from synthesis.design import ControllerDesign
+
+    def walk(x):
+        if isinstance(x, float):
+            return x * factor
+        if isinstance(x, dict):
+            return {k: walk(v) for k, v in x.items()}
+        if isinstance(x, list):
+            return [walk(v) for v in x]
+        return x
+
+    out = []
+    for d in designs:
+        fields = dataclasses.asdict(d)
+        if field is None:
+            fields = walk(fields)
+        elif d.labels == labels:
+            fields[field] = fields[field] * factor
+        out.append(ControllerDesign(**fields))
+    return out
+
+
+def test_the_run_identity_ignores_machine_digits_but_not_a_real_change(default_design_table,
+                                                                       tmp_path):
+    """A store keeps the design table it was made with; a table whose every float moved by
+    1e-9 relative is that table, one with a safe speed changed in its 4th digit is not."""
+    from drake_cert.experiments.run_store import RunStore, design_dicts, run_identity
+
+    config = ReproduceConfig.quick()
+    designs = default_design_table.designs
+    store = RunStore(tmp_path / "store")
+    identity = store.identity(config, designs)
+    store.put_betas(identity, {})  # the first write records the identity's design table
+    assert identity == run_identity(config, designs)
+    nudged = _nudged(designs)
+    assert any(a.k_m != b.k_m for a, b in zip(nudged, designs, strict=True))
+    assert RunStore(tmp_path / "store").identity(config, nudged) == identity
+    assert run_identity(config, nudged, references=[design_dicts(designs)]) == identity
+    sunny = next(d for d in designs if d.labels == ["sunny"])
+    faster = _nudged(designs, factor=(sunny.speed_mps + 0.01) / sunny.speed_mps,
+                     field="speed_mps", labels=["sunny"])  # 19.36 -> 19.37 m/s
+    assert RunStore(tmp_path / "store").identity(config, faster) != identity
+    why = RunStore(tmp_path / "store").explain(config, faster)
+    assert "design table differs" in why and "speed_mps" in why
+
+
+def test_a_refused_store_says_what_differs_and_meta_names_the_computing_revision(
+        quick_local, default_design_table):
+    import dataclasses
+
+    from drake_cert.experiments.run_store import RunStore
+
+    store = RunStore(quick_local / "store")
+    why = store.explain(dataclasses.replace(ReproduceConfig.quick(), n=300),
+                        default_design_table.designs)
+    assert "n 200 there, 300 here" in why
+    meta = json.loads((quick_local / "meta.json").read_text())
+    assert "git_revision" not in meta
+    assert meta["computed_by_revisions"] == [store.revision]
+    assert meta["written_by_revision"] == store.revision
+
+
+def test_a_store_begun_in_other_bf16_digits_is_not_finished_here(default_design_table,
+                                                                 tmp_path):
+    """Native and emulated bf16 agree on discrete outcomes but not on every digit: resuming
+    would mix them, so the store is refused with the reason; --from-store computes nothing."""
+    import dataclasses
+
+    from drake_cert.errors import ConfigError
+    from drake_cert.experiments.run_store import MANIFEST, RunStore
+
+    config = dataclasses.replace(ReproduceConfig.quick(), precision="bf16")
+    store = RunStore(tmp_path / "store")
+    identity = store.identity(config, default_design_table.designs)
+    store.put_betas(identity, {})
+    store.check_arithmetic(identity, "bf16")  # same CPU: fine
+    manifest = json.loads((tmp_path / "store" / MANIFEST).read_text())
+    here = manifest[identity]["arithmetic"]["numbers"]
+    other = "bf16-emulated" if here == "bf16-native" else "bf16-native"
+    manifest[identity]["arithmetic"]["numbers"] = other
+    (tmp_path / "store" / MANIFEST).write_text(json.dumps(manifest))
+    with pytest.raises(ConfigError, match="made in bf16 .* this CPU"):
+        RunStore(tmp_path / "store").check_arithmetic(identity, "bf16")

@@ -1,5 +1,5 @@
-"""One root seed, independent streams per frame and purpose; selection ties go to the least
-friction label."""
+"""One seed scheme for the whole project: named streams of a root seed, addressed by spawn keys;
+selection ties go to the least friction label."""
 
 import numpy as np
 import pytest
@@ -7,7 +7,12 @@ import torch
 
 from drake_cert.certification.classifier import SmoothedClassifier, select_label
 from drake_cert.certification.seeds import (
-    PURPOSES,
+    FRAME_PURPOSES,
+    Purpose,
+    child_rng,
+    child_seed,
+    child_sequence,
+    float_key,
     frame_choice_seed,
     stream_seed,
     stream_sequence,
@@ -17,45 +22,73 @@ from drake_cert.errors import CertificationError
 
 
 @pytest.mark.parametrize("root", [0, 12345])
-def test_no_two_streams_share_a_seed_over_a_thousand_frames(root):
+def test_no_two_streams_share_a_seed_over_many_keys(root):
+    """Every purpose over 1000 keys, both experiment splits, and the reproduction's keys."""
     test = [s for i in range(1000) for s in streams(root, i).values()]
     cal = [s for i in range(1000) for s in streams(root, i, split="calibration").values()]
-    everything = test + cal + [frame_choice_seed(root)]
-    assert len(test) == 1000 * len(PURPOSES)
+    diagram = [child_seed(root, p, k) for p in Purpose for k in range(1000)]
+    reproduction = [child_seed(root, Purpose.CELL, preset, owner, attack, float_key(sigma),
+                               float_key(eps))
+                    for preset in range(3) for owner in range(4) for attack in range(3)
+                    for sigma in (0.0, 0.25, 0.5, 1.0) for eps in (0.0, 0.25, 0.5, 1.0, 2.0)]
+    everything = test + cal + diagram + reproduction + [frame_choice_seed(root)]
+    assert len(test) == 1000 * len(FRAME_PURPOSES)
     assert len(set(everything)) == len(everything)
     assert not set(test) & set(cal)  # calibration streams never equal test streams
 
 
-def test_streams_do_not_share_draws():
+def test_distinct_purposes_never_share_a_stream():
     # Distinct seeds could still give overlapping generator output if they were offsets of
     # one another in a shared sequence; SeedSequence hashes them. The first 64 normals of
-    # every purpose of a few frames share no value between any two streams.
-    draws = []
-    for i in range(20):
-        for s in streams(0, i).values():
-            draws.append(torch.randn(64, generator=torch.Generator().manual_seed(s)).numpy())
-    draws = np.array(draws)
+    # every purpose at a few keys share no value between any two streams.
+    draws = np.array([torch.randn(64, generator=torch.Generator().manual_seed(
+        child_seed(0, p, k))).numpy() for p in Purpose for k in range(5)])
     same = (draws[:, None, :] == draws[None, :, :]).any(axis=2)
     np.fill_diagonal(same, False)
     assert not same.any()
+    # A purpose is a name: its string and its member are the same stream.
+    assert child_seed(3, "camera", 7) == child_seed(3, Purpose.CAMERA, 7)
 
 
-def test_streams_are_the_spawned_children_of_the_root():
-    root = np.random.SeedSequence(7)
-    child = root.spawn(2)[1].spawn(4)[3].spawn(len(PURPOSES))[PURPOSES.index("attack")]
-    assert (stream_sequence(7, "calibration", 3, "attack").generate_state(4)
+def test_a_stream_is_the_spawned_child_of_its_root():
+    """Stream (purpose, k) is what SeedSequence(root).spawn hands out at those positions, so
+    frame k's streams do not depend on how many frames were drawn before it."""
+    code = list(Purpose).index(Purpose.ATTACK) + 1
+    child = np.random.SeedSequence(7).spawn(code + 1)[code].spawn(4)[3]
+    assert (child_sequence(7, Purpose.ATTACK, 3).generate_state(4)
             == child.generate_state(4)).all()
+    late = child_seed(7, Purpose.ATTACK, 17)
+    for k in range(17):
+        child_rng(7, Purpose.ATTACK, k).normal(size=100)  # drawing others changes nothing
+    assert child_seed(7, Purpose.ATTACK, 17) == late
+    # The experiments' per-frame names are streams of the same scheme.
+    assert (stream_sequence(7, "calibration", 3, "attack").generate_state(4)
+            == child_sequence(7, "attack", 1, 3).generate_state(4)).all()
     assert streams(7, 3, split="calibration")["attack"] == stream_seed(7, 3, "attack",
                                                                         split="calibration")
 
 
-def test_bad_seed_split_and_purpose_are_rejected():
+def test_float_keys_are_exact_and_machine_independent():
+    assert float_key(0.25) == 0x3FD0000000000000  # IEEE-754 bits of 0.25
+    assert float_key(0.1 + 0.2) != float_key(0.3)  # every distinct value is its own key
+    assert float_key(-0.0) == float_key(0.0) == 0
+    with pytest.raises(CertificationError, match="key"):
+        float_key(-1.0)
+
+
+def test_bad_seed_split_purpose_and_key_are_rejected():
     with pytest.raises(CertificationError, match="root seed"):
         streams(-1, 0)
     with pytest.raises(CertificationError, match="split"):
         streams(0, 0, split="train")
     with pytest.raises(CertificationError, match="purpose"):
         stream_seed(0, 0, "guess")
+    with pytest.raises(CertificationError, match="purpose"):
+        child_seed(0, "guess", 1)
+    with pytest.raises(CertificationError, match="key"):
+        child_seed(0, Purpose.CAMERA, -1)
+    with pytest.raises(CertificationError, match="key"):
+        child_seed(0, Purpose.CAMERA, True)
 
 
 def test_selection_ties_go_to_the_least_friction_label():
@@ -78,3 +111,24 @@ def test_certify_resolves_a_selection_tie_to_the_conservative_label():
     cert = smooth.certify(torch.full((1, 4, 4), 0.5), 100, 1000, 0.001, 100, seed=0,
                           selection_seed=1)
     assert cert.top_label == 2  # 50 votes each for labels 0 and 2
+
+
+def test_a_drive_draws_tick_k_and_segment_i_the_same_whatever_came_before():
+    """The Diagram's streams are keyed by tick and segment: a camera that rendered ticks 0-4
+    renders tick 5 as one that did not, and a longer route keeps its first segments' truth."""
+    from drake_cert.config import load_conditions
+    from systems.camera import CameraSource
+    from systems.route import Route, SegmentSpec
+
+    conditions = load_conditions()
+    specs = [SegmentSpec(length_m=60.0, curvature_per_m=0.0, condition=c)
+             for c in ("sunny", "rain", "snow")]
+    short = Route.build(specs[:2], conditions, "robotcar-like", seed=5)
+    long = Route.build(specs, conditions, "robotcar-like", seed=5)
+    assert [s.stiffness_n_per_rad for s in long.segments[:2]] == \
+           [s.stiffness_n_per_rad for s in short.segments]
+    busy, fresh = (CameraSource(long, conditions, "robotcar-like", seed=9) for _ in range(2))
+    for k in range(5):
+        busy.capture(0.1 * k, 2.0 * k, k)
+    assert torch.equal(busy.capture(0.5, 10.0, 5).image, fresh.capture(0.5, 10.0, 5).image)
+    assert not torch.equal(fresh.capture(0.5, 10.0, 5).image, fresh.capture(0.5, 10.0, 6).image)

@@ -1,47 +1,108 @@
-"""Independent random streams for an experiment, all from one root seed (DESIGN 3).
+"""The project's one seed scheme: every random draw comes from a named stream of a root seed.
 
-Every random draw of a perception experiment belongs to one *purpose* and, for per-frame
-purposes, to one frame of one split. Each (split, frame, purpose) gets its own stream,
-a child of ``numpy.random.SeedSequence(root_seed)`` reached by the spawn key
-``(split, frame_index, purpose)`` -- exactly the child that ``SeedSequence.spawn`` would
-hand out at those positions, but addressable directly, so that frame 17's streams do not
-depend on how many frames run before it. SeedSequence hashes the root entropy together with
-the spawn key, so distinct keys give statistically independent streams (and, in practice,
-distinct 63-bit seeds: :func:`streams` is tested to give 10,000 distinct seeds).
+A stream is ``numpy.random.SeedSequence(root, spawn_key=(code(purpose), *keys))``: the child
+that ``SeedSequence(root).spawn`` would hand out at those positions, but addressed directly,
+so that frame 17's streams do not depend on how many frames were drawn before it.
+``purpose`` is a :class:`Purpose` (or its name) and ``keys`` are non-negative integers that say
+which draw of that purpose it is (a frame, a camera tick, a segment, a preset; floats enter
+through :func:`float_key`). SeedSequence hashes the root together with the whole spawn key,
+so two streams that differ in purpose or key are statistically independent, and in practice
+their 63-bit seeds differ (tested over many keys). Same root, purpose and keys: the same
+draws, on any machine.
 
-Purposes (per frame):
+Who uses which purpose (keys in parentheses; a root is a user's seed or a seed derived here):
 
-- ``attack``: the PGD random start and the noise draws of the SmoothAdv objective;
-- ``selection``: the n0 samples that choose the certificate's label;
-- ``estimation``: the n samples that bound the label probabilities (clean frame);
-- ``attacked_selection`` / ``attacked_estimation``: the same at the attacked frame;
-- ``calibration``: the samples of a calibration frame (split "calibration").
+- the driving Diagram (root: the scenario's seed): ``route`` (segment), ``camera`` (tick),
+  ``attack`` (tick), ``selection`` (tick; the selection samples of a certificate),
+  ``estimation`` (tick; the samples that bound the label probabilities, or the median's),
+  ``regression_calibration``, ``conformal_calibration`` and ``quantization_calibration`` (no
+  key: one calibration before a drive each);
+- perception experiments (root: the experiment's seed): ``frame_choice`` (no key),
+  ``attack``, ``selection``, ``estimation``, ``attacked_selection``, ``attacked_estimation``
+  and ``calibration``, each keyed (split, frame) (:func:`stream_seed`, :func:`streams`);
+  a robust conformal calibration draws ``calibration`` (calibration split, frame) of its root;
+- the reproduction (root: the run's seed): ``frame_choice`` (preset),
+  ``regression_calibration`` and ``conformal_calibration`` (preset, sigma), and ``cell``
+  (preset, pipeline, attack, sigma, eps): the root of that cell's Diagram blocks, which draw
+  ``attack``, ``selection`` and ``estimation`` keyed by the frame's position, exactly as in
+  a drive.
 
-One stream per root seed, not per frame: ``frame_choice`` (which test frames are used).
+Why: a certificate's guarantee is over noise the attacker does not know, and a conformal
+guarantee needs calibration noise independent of test noise. Offsets added to one integer seed
+(``seed + i``, ``seed + 500_000``) once made the attack stream of one frame the certificate
+stream of another; spawn keys cannot collide that way.
 
-Why: the certificate's guarantee is over noise the attacker does not know, and the conformal
-guarantee needs calibration noise independent of test noise. Adding offsets to one integer
-seed (``seed + i``, ``seed + 500_000``) made the attack stream of one frame the certificate
-stream of another; spawned streams cannot collide that way.
+Codes of purposes are their places in :class:`Purpose`: append new purposes at the end, never
+reorder (a reorder changes every draw).
 """
 
 from __future__ import annotations
+
+import enum
+import math
+import struct
 
 import numpy as np
 
 from drake_cert.errors import CertificationError
 
+
+class Purpose(enum.Enum):
+    """What a stream is for (its spawn-key code is its place in this list, from 1)."""
+
+    FRAME_CHOICE = "frame_choice"  # which test frames an experiment uses
+    ATTACK = "attack"  # a PGD attack's random start and its noise draws
+    SELECTION = "selection"  # the n0 samples that choose a certificate's label
+    ESTIMATION = "estimation"  # the samples that bound a certificate's probabilities
+    ATTACKED_SELECTION = "attacked_selection"  # selection at the attacked frame (experiments)
+    ATTACKED_ESTIMATION = "attacked_estimation"  # estimation at the attacked frame
+    CALIBRATION = "calibration"  # the samples of one calibration frame
+    ROUTE = "route"  # a route segment's true stiffness
+    CAMERA = "camera"  # the frame rendered (or chosen) at a camera tick
+    REGRESSION_CALIBRATION = "regression_calibration"  # the regression's conformal beta
+    CONFORMAL_CALIBRATION = "conformal_calibration"  # the robust conformal thresholds
+    QUANTIZATION_CALIBRATION = "quantization_calibration"  # int8 calibration frames' noise
+    CELL = "cell"  # a reproduction cell: the root of its blocks' streams
+
+
+_CODE = {p: i for i, p in enumerate(Purpose, start=1)}
+
 SPLITS = ("test", "calibration")
-PURPOSES = ("attack", "selection", "estimation", "attacked_selection", "attacked_estimation",
-            "calibration")
-_FRAME_CHOICE_KEY = 2  # spawn key of the root-level frame-choice stream (splits use 0, 1)
+# Per-frame purposes of a perception experiment (keyed by split and frame).
+FRAME_PURPOSES = ("attack", "selection", "estimation", "attacked_selection",
+                  "attacked_estimation", "calibration")
 
 
-def _check_seed(root_seed: int) -> int:
-    if isinstance(root_seed, bool) or not isinstance(root_seed, (int, np.integer)) \
-            or root_seed < 0:
-        raise CertificationError(f"root seed = {root_seed!r} must be a non-negative integer")
-    return int(root_seed)
+def _check_int(value, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise CertificationError(f"{what} = {value!r} must be a non-negative integer")
+    return int(value)
+
+
+def _purpose(purpose: Purpose | str) -> Purpose:
+    if isinstance(purpose, Purpose):
+        return purpose
+    try:
+        return Purpose(purpose)
+    except ValueError:
+        raise CertificationError(f"purpose {purpose!r} is not one of "
+                                 f"{', '.join(p.value for p in Purpose)}") from None
+
+
+def float_key(value: float) -> int:
+    """A spawn-key entry for a non-negative float (a sigma, a budget): its IEEE-754 bits, so
+    every distinct value is its own key and ``0.25`` is the same key on every machine."""
+    value = float(value)
+    if not (math.isfinite(value) and value >= 0.0):
+        raise CertificationError(f"key {value!r} must be a finite number >= 0")
+    return int.from_bytes(struct.pack(">d", value + 0.0), "big")  # -0.0 -> 0.0
+
+
+def child_sequence(root: int, purpose: Purpose | str, *keys: int) -> np.random.SeedSequence:
+    """The SeedSequence of stream (purpose, keys) of ``root``: spawn key (code, *keys)."""
+    root = _check_int(root, "root seed")
+    code = _CODE[_purpose(purpose)]
+    return np.random.SeedSequence(root, spawn_key=(code, *(_check_int(k, "key") for k in keys)))
 
 
 def seed_from_sequence(sequence: np.random.SeedSequence) -> int:
@@ -49,28 +110,35 @@ def seed_from_sequence(sequence: np.random.SeedSequence) -> int:
     return int(sequence.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
 
+def child_seed(root: int, purpose: Purpose | str, *keys: int) -> int:
+    """The 63-bit integer seed of stream (purpose, keys) of ``root`` (for
+    ``torch.Generator().manual_seed`` or ``numpy.random.default_rng``)."""
+    return seed_from_sequence(child_sequence(root, purpose, *keys))
+
+
+def child_rng(root: int, purpose: Purpose | str, *keys: int) -> np.random.Generator:
+    """A numpy Generator on stream (purpose, keys) of ``root``."""
+    return np.random.default_rng(child_sequence(root, purpose, *keys))
+
+
+# ---------------------------------------------------------------- perception experiments
 def stream_sequence(root_seed: int, split: str, frame_index: int,
                     purpose: str) -> np.random.SeedSequence:
-    """The SeedSequence of one (split, frame, purpose): spawn key (split, frame, purpose)."""
-    root_seed = _check_seed(root_seed)
+    """The SeedSequence of one (split, frame, purpose) of an experiment: stream (purpose,
+    split index, frame) of the root."""
     if split not in SPLITS:
         raise CertificationError(f"split {split!r} is not one of {', '.join(SPLITS)}")
-    if purpose not in PURPOSES:
-        raise CertificationError(f"purpose {purpose!r} is not one of {', '.join(PURPOSES)}")
-    if isinstance(frame_index, bool) or not isinstance(frame_index, (int, np.integer)) \
-            or frame_index < 0:
-        raise CertificationError(f"frame index = {frame_index!r} must be an integer >= 0")
-    return np.random.SeedSequence(root_seed, spawn_key=(SPLITS.index(split), int(frame_index),
-                                                        PURPOSES.index(purpose)))
+    if purpose not in FRAME_PURPOSES:
+        raise CertificationError(f"purpose {purpose!r} is not one of "
+                                 f"{', '.join(FRAME_PURPOSES)}")
+    frame_index = _check_int(frame_index, "frame index")
+    return child_sequence(root_seed, purpose, SPLITS.index(split), frame_index)
 
 
 def streams(root_seed: int, frame_index: int, *, split: str = "test") -> dict[str, int]:
-    """Integer seeds of every purpose of one frame: ``{purpose: seed}`` (see module doc).
-
-    Use them with ``torch.Generator().manual_seed(seed)`` or ``numpy.random.default_rng(seed)``.
-    """
+    """Integer seeds of every per-frame purpose of one frame: ``{purpose: seed}``."""
     return {p: seed_from_sequence(stream_sequence(root_seed, split, frame_index, p))
-            for p in PURPOSES}
+            for p in FRAME_PURPOSES}
 
 
 def stream_seed(root_seed: int, frame_index: int, purpose: str, *, split: str = "test") -> int:
@@ -80,5 +148,4 @@ def stream_seed(root_seed: int, frame_index: int, purpose: str, *, split: str = 
 
 def frame_choice_seed(root_seed: int) -> int:
     """The seed that chooses which frames an experiment uses (one per root seed)."""
-    root = _check_seed(root_seed)
-    return seed_from_sequence(np.random.SeedSequence(root, spawn_key=(_FRAME_CHOICE_KEY,)))
+    return child_seed(root_seed, Purpose.FRAME_CHOICE)

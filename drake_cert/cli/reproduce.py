@@ -1,4 +1,4 @@
-"""``drake-cert reproduce``: the paper's tables from per-frame episodes (issue 8, DESIGN 7).
+"""``drake-cert reproduce``: the paper's tables from per-frame episodes (DESIGN 7).
 
 Writes ``results.csv`` (one row per cell), ``frames.csv`` (one row per frame and cell),
 ``tables.md`` (ours beside the paper's numbers), plots and ``meta.json`` under ``--out``.
@@ -37,11 +37,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="conformal calibration frames per label (default: 100, quick 6)")
     parser.add_argument("--calibration-n", type=int, default=None,
                         help="samples per calibration frame (default: 1000, quick 100)")
-    parser.add_argument("--interval", choices=("safe_set", "conformal"), default="safe_set",
-                        help="g's run-time interval: the paper's safe-set interval, or the robust "
-                             "conformal one (DESIGN 3; calibrated before the run)")
+    parser.add_argument("--interval", default=None, help=argparse.SUPPRESS)  # gone: says so
     parser.add_argument("--conformal-per-class", type=int, default=None,
-                        help="robust conformal calibration frames per label (default 150)")
+                        help="robust conformal calibration frames per label of g_conformal "
+                             "(default 150, quick 4)")
+    parser.add_argument("--no-conformal", action="store_true",
+                        help="leave out the pipeline g_conformal (g's certificates read by the "
+                             "robust conformal interval) and its calibration")
     parser.add_argument("--no-regression", action="store_true",
                         help="skip the regression tables")
     parser.add_argument("--seed", type=int, default=0, help="root seed")
@@ -49,7 +51,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="in-process, or Ray (local on demand, or --address)")
     parser.add_argument("--workers", type=int, default=2, help="Ray workers")
     parser.add_argument("--address", default=None,
-                        help="existing Ray cluster address (e.g. auto or ray://host:10001)")
+                        help="existing Ray cluster: HOST:PORT of its head (`ray start --head "
+                             "--port PORT`), auto, or ray://host:10001")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                         help="model arithmetic of attacks, certificates and calibration (auto: "
                              "bf16 where the CPU has it natively, else fp32; the environment "
@@ -68,8 +71,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def build_config(args):
     import dataclasses
 
+    from drake_cert.errors import ConfigError
     from drake_cert.experiments.reproduce_config import ReproduceConfig
 
+    if args.interval is not None:
+        raise ConfigError("--interval is gone: every run has both intervals, g (the safe-set "
+                          "interval) and g_conformal (the robust conformal interval) on the same "
+                          "frames, attacks and noise; --no-conformal leaves g_conformal out")
     config = ReproduceConfig.quick(args.seed) if args.quick else ReproduceConfig(seed=args.seed)
     changes = {}
     if args.presets:
@@ -93,7 +101,8 @@ def build_config(args):
         changes["calibration_per_class"] = args.calibration_per_class
     if args.calibration_n is not None:
         changes["calibration_n"] = args.calibration_n
-    changes["interval"] = args.interval
+    if args.no_conformal:
+        changes["conformal"] = False
     changes["precision"] = args.precision
     if args.conformal_per_class is not None:
         changes["conformal_per_class"] = args.conformal_per_class
@@ -113,25 +122,31 @@ def log_run(path, entry: dict) -> list[dict]:
 
 
 def run(args) -> int:
+    import dataclasses
     import shutil
     from pathlib import Path
 
     from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.errors import ConfigError
-    from drake_cert.experiments import outputs, tables
+    from drake_cert.experiments import claims, outputs, tables
     from drake_cert.experiments.executors import make_executor
-    from drake_cert.experiments.reproduce import run_reproduction
+    from drake_cert.experiments.reproduce import run_reproduction, tasks_for
     from drake_cert.experiments.run_store import RunStore
     from drake_cert.io import check_writable, provenance
     from synthesis.table import synthesize_table
 
     config = build_config(args)
+    out = Path(args.out)
+    if args.from_store and args.precision == "auto":
+        # Nothing is computed: "auto" means the precision the stored frames were made in.
+        made_in = RunStore(out / "store").precisions()
+        if made_in and config.precision not in made_in:
+            config = dataclasses.replace(config, precision=made_in[-1])
     if args.budget_min is not None and not args.budget_min > 0:
         raise ConfigError(f"--budget-min = {args.budget_min} must be a positive number")
     if args.from_store and args.fresh:
         raise ConfigError("--from-store and --fresh exclude each other")
-    out = Path(args.out)
     check_writable(out / "results.csv", "--out")
     if args.fresh and (out / "store").exists():
         shutil.rmtree(out / "store")
@@ -152,9 +167,10 @@ def run(args) -> int:
         return bars[-1].update
 
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())  # once
+    store = RunStore(out / "store")
     try:
-        rows = run_reproduction(config, executor, progress=progress, store=RunStore(out / "store"),
-                                stop=stop, designs=designs)
+        rows = run_reproduction(config, executor, progress=progress, store=store, stop=stop,
+                                designs=designs)
     finally:
         for b in bars:
             b.close()
@@ -163,7 +179,9 @@ def run(args) -> int:
     complete = all(k == config.frames for k in done.values())
     if not rows:
         if args.from_store:
-            raise ConfigError(f"{out / 'store'} holds no frame made with these settings")
+            why = store.explain(config, designs)
+            raise ConfigError(f"{out / 'store'} holds no frame made with these settings"
+                              + (f": {why}" if why else ""))
         print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "frames_done": done,
                           "complete": False}))
         return 0
@@ -171,13 +189,18 @@ def run(args) -> int:
         started, wall_s=round(wall, 1), executor=args.executor,
         workers=args.workers if args.executor == "ray" else 1, frames_done=done))
     summary = tables.summarize(rows, config.eps, config.seed)
-    meta = dict(provenance(seed=config.seed), wall_s=round(wall, 1),
+    # The frames' revisions lead: the tables are theirs; this invocation only wrote them.
+    written_by = provenance(seed=config.seed)
+    meta = dict(computed_by_revisions=store.revisions(tasks_for(config)),
+                written_by_revision=written_by.pop("git_revision"), **written_by,
+                wall_s=round(wall, 1),
                 executor=args.executor, workers=args.workers if args.executor == "ray" else 1,
                 frame_cells=len(rows), frames_done=done, complete=complete,
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
                                     plots=not args.no_plots, designs=designs)
-    holds = {p: c["holds"] for p, c in json.loads((out / "claims.json").read_text()).items()}
+    holds = {p: c["holds"] for p, c in claims.preset_claims(
+        json.loads((out / "claims.json").read_text())).items()}
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
                       "claims_hold": holds, "files": [str(p) for p in written]}))

@@ -1,7 +1,9 @@
 """The reproduction's calibrations, computed before its frames and spread over its executor:
-h's conformal beta per (preset, sigma) (DESIGN 3) and, with ``--interval conformal``, g's robust
-conformal calibration per (preset, sigma). Each comes from its own seed stream, so a pair's
-numbers are those it gets computed alone; the run's store keeps them as they arrive.
+h's conformal beta per (preset, sigma) (DESIGN 3) and, for the pipeline g_conformal, g's robust
+conformal calibration per (preset, sigma). Each comes from its own seed stream
+(``regression_calibration`` or ``conformal_calibration`` (preset, sigma) of the root seed), so a
+pair's numbers are those it gets computed alone, in any run; the run's store keeps them as they
+arrive.
 """
 
 from __future__ import annotations
@@ -10,15 +12,9 @@ import dataclasses
 from collections.abc import Callable
 from typing import TYPE_CHECKING
 
+from drake_cert.certification.seeds import Purpose
 from drake_cert.config import load_conditions
-from drake_cert.experiments.reproduce_config import (
-    CALIBRATION,
-    CONFORMAL,
-    ReproduceConfig,
-    preset_key,
-    run_model,
-    seed_of,
-)
+from drake_cert.experiments.reproduce_config import ReproduceConfig, calibration_seed, run_model
 
 if TYPE_CHECKING:
     from drake_cert.experiments.run_store import RunStore
@@ -39,8 +35,7 @@ def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
         MedianSmoothedRegressor(model, sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
         cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
         alpha_m=c.alpha_m, alpha_c=c.alpha_c,
-        seed=seed_of(c, preset_key(preset), CALIBRATION,
-                     c.sigmas.index(sigma) if sigma in c.sigmas else 99))
+        seed=calibration_seed(c, Purpose.REGRESSION_CALIBRATION, preset, sigma))
     return calib.beta
 
 
@@ -95,14 +90,14 @@ def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | 
 
 
 def conformal_sigmas(config: ReproduceConfig) -> list[float]:
-    """Every sigma g certifies with in the run, ascending (a calibration's seed index)."""
+    """Every sigma g certifies with in the run, ascending."""
     return sorted({*config.sigmas, config.sweep_sigma})
 
 
 def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, conditions=None):
     """The robust conformal calibration of g at (preset, sigma): ``conformal_per_class``
     held-out frames per label, ``conformal_n`` samples each, from the seed stream
-    (preset, CONFORMAL, index of sigma in :func:`conformal_sigmas`)."""
+    ``conformal_calibration`` (preset, sigma) of the root seed."""
     from drake_cert.certification.classifier import SmoothedClassifier
     from drake_cert.certification.conformal import calibrate_robust_conformal
     from drake_cert.perception.datasets import load_split
@@ -114,8 +109,7 @@ def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, co
     return calibrate_robust_conformal(
         classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
         batch_size=min(config.batch_size, config.conformal_n),
-        root_seed=seed_of(config, preset_key(preset), CONFORMAL,
-                          conformal_sigmas(config).index(sigma)))
+        root_seed=calibration_seed(config, Purpose.CONFORMAL_CALIBRATION, preset, sigma))
 
 
 class ConformalWorker:
@@ -132,9 +126,9 @@ def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunSto
                            identity: str = "", progress: Callable[[int], None] | None = None
                            ) -> dict:
     """g's robust conformal calibration for every (preset, sigma) the run certifies with
-    (empty unless ``config.interval`` is "conformal"), spread over ``executor`` and kept in
-    ``store`` like the betas; each pair's numbers are those it gets computed alone."""
-    if config.interval != "conformal":
+    (empty without the pipeline g_conformal), spread over ``executor`` and kept in ``store``
+    like the betas; each pair's numbers are those it gets computed alone."""
+    if not config.conformal:
         return {}
     tasks = [CalibrationTask(p, s) for p in config.presets for s in conformal_sigmas(config)]
     stored = store.conformal(identity) if store is not None else {}

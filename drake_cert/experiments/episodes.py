@@ -1,4 +1,4 @@
-"""Closed-loop episodes of the per-frame experiments (DESIGN 7, issue 8).
+"""Closed-loop episodes of the per-frame experiments (DESIGN 7).
 
 An episode drives the car with one design at that design's safe speed on the Fiala
 evaluation plant, with the frame's TRUE stiffness and friction, over the design road (a

@@ -1,4 +1,4 @@
-"""Reproduce the paper's experiments as per-frame episodes (paper section V, DESIGN 7, issue 8).
+"""Reproduce the paper's experiments as per-frame episodes (paper section V, DESIGN 7).
 
 For every test frame of a preset (true label, true stiffness, true friction) and every cell
 (pipeline x sigma x attack x budget): the attack on the pipeline under test, its perception
@@ -14,6 +14,9 @@ Pipelines (the same frames, attacks and budgets for each):
   SmoothAdv PGD on g (expectation over the smoothing noise). Its ``certificate`` is the
   certified radius of the label range the run-time interval came from (0 on the envelope);
   ``safe_set_radius`` is the paper's R_S(a), infinite when S(a) is the whole family.
+- ``g_conformal``: the same attacked frame and the same certificate as ``g`` (one attack, one
+  certificate per frame and cell), read by the robust conformal interval (DESIGN 3; calibrated
+  before the frames) instead of the safe-set one: the two intervals compared noise for noise.
 - ``f_reg``: the non-robust regressor; its prediction (clipped to the preset's envelope) gets
   the narrowest design containing it.
 - ``h``: the median-smoothed regressor; order-statistic bounds at eps widened by the Mondrian
@@ -38,15 +41,15 @@ from drake_cert.experiments.calibrations import (
     conformal_sigmas,
 )
 from drake_cert.experiments.reproduce_config import (
-    CELL,
     FrameTask,
     ReproduceConfig,
+    cell_seed,
     frame_indices,
+    noise_cell,
     preset_key,
     run_model,
-    seed_of,
 )
-from drake_cert.experiments.run_store import RunStore, run_identity
+from drake_cert.experiments.run_store import RunStore
 
 
 class FrameWorker:
@@ -81,7 +84,7 @@ class FrameWorker:
 
         if preset not in self._frames:
             test = load_split(preset, "test", conditions=self.conditions)
-            idx = frame_indices(self.config, preset_key(preset), test.labels)
+            idx = frame_indices(self.config, preset, test.labels)
             self._frames[preset] = (test, idx)
         return self._frames[preset]
 
@@ -113,11 +116,13 @@ class FrameWorker:
                      true_label=names[label], stiffness_n_per_rad=frame.stiffness_n_per_rad,
                      friction_mu=friction, seed=f"{c.seed}/{p_idx}/{task.position}")
         rows = []
-        for cell_index, cell in enumerate(c.cells()):
+        perceived: dict = {}  # noise cell -> perception result (g_conformal reads g's)
+        for cell in c.cells():
             pipeline, sigma, kind, eps = cell
-            attacker, perception, interval = self.blocks(task.preset, cell_index, cell)
-            seen = attacker.perturb(frame)
-            result = perception.perceive(seen, 0.0)
+            attacker, perception, interval = self.blocks(task.preset, cell)
+            if noise_cell(cell) not in perceived:
+                perceived[noise_cell(cell)] = perception.perceive(attacker.perturb(frame), 0.0)
+            result = perceived[noise_cell(cell)]
             decision = interval.request(result)
             design = interval.designs[decision.design_index]
             outcome = self.episodes.outcome(design, frame.stiffness_n_per_rad, friction)
@@ -134,37 +139,44 @@ class FrameWorker:
             rows.append(row)
         return rows
 
-    def blocks(self, preset: str, cell_index: int, cell: tuple):
+    def blocks(self, preset: str, cell: tuple):
         """The Diagram's own attacker, perception and interval blocks for one cell (cached).
 
-        Their random streams are ``SeedSequence([cell seed, purpose, frame position])`` with
-        the cell seed spawned from the root seed: distinct for every (preset, cell, frame).
+        The attacker and the perception draw from the streams of the cell's seed
+        (:func:`reproduce_config.cell_seed`) keyed by the frame's position, as a drive's blocks
+        do by camera tick: distinct for every (preset, cell, frame). A g_conformal cell shares
+        the attacker and perception blocks of its g cell (:func:`reproduce_config.noise_cell`).
         """
         from synthesis.selection import preset_designs
         from systems.attacker import Attacker
         from systems.certified_interval import CertifiedInterval
         from systems.perception_smoothing import PerceptionSmoothing
 
-        key = (preset, cell_index)
+        key = (preset, cell)
         if key in self._blocks:
             return self._blocks[key]
         c = self.config
         pipeline, sigma, kind, eps = cell
         task = "regress" if pipeline in ("f_reg", "h") else "classify"
-        mode = "certified" if pipeline in ("g", "h") else "base"
+        mode = "certified" if pipeline in ("g", "g_conformal", "h") else "base"
         model = self.model(preset, task, sigma)
-        seed = seed_of(c, preset_key(preset), CELL, cell_index)
         labels = list(self.conditions.preset(preset).labels)
-        attacker = Attacker(kind, eps=eps, target="smoothed" if mode == "certified" else "base",
-                            model=model, sigma=sigma, task=task, seed=seed,
-                            steps=c.attack_steps, noise_draws=c.attack_noise_draws)
-        perception = PerceptionSmoothing(
-            model, mode=mode, task=task, sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n,
-            alpha=c.alpha, batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels,
-            eps=eps)
+        shared = (preset, "noise", noise_cell(cell))
+        if shared not in self._blocks:
+            seed = cell_seed(c, preset, cell)
+            attacker = Attacker(kind, eps=eps,
+                                target="smoothed" if mode == "certified" else "base",
+                                model=model, sigma=sigma, task=task, seed=seed,
+                                steps=c.attack_steps, noise_draws=c.attack_noise_draws)
+            perception = PerceptionSmoothing(
+                model, mode=mode, task=task, sigma=sigma if sigma > 0 else 1.0, n0=c.n0,
+                n=c.n, alpha=c.alpha, batch_size=min(c.batch_size, c.n), seed=seed,
+                label_names=labels, eps=eps)  # fixed-n CERTIFY: both g intervals read it
+            self._blocks[shared] = (attacker, perception)
+        attacker, perception = self._blocks[shared]
         beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         conformal = None
-        if pipeline == "g" and c.interval == "conformal":
+        if pipeline == "g_conformal":
             if (preset, sigma) not in self._conformal:
                 self._conformal[(preset, sigma)] = conformal_calibration(c, preset, sigma,
                                                                          self.conditions)
@@ -227,19 +239,21 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     bar = progress or (lambda desc, total: None)
     if designs is None:
         designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
-    identity = run_identity(config, designs) if store is not None else ""
+    identity = store.identity(config, designs) if store is not None else ""
     tasks = tasks_for(config)
     done = {t: store.frame(identity, t) for t in tasks} if store is not None else {}
     todo = [t for t in tasks if done.get(t) is None]
     stored = len(tasks) - len(todo)
     if stop is not None and stop():
         todo = []  # nothing will run: no calibration either
+    if todo and store is not None:
+        store.check_arithmetic(identity, config.precision)  # no run finished in other digits
     betas, conformal = {}, {}
     if todo:
         if config.regression:
             betas = calibration_betas(config, executor, store, identity, bar(
                 "calibration (h)", len(config.presets) * len(config.sigmas)))
-        if config.interval == "conformal":
+        if config.conformal:
             conformal = conformal_calibrations(config, executor, store, identity, bar(
                 "calibration (conformal g)",
                 len(config.presets) * len(conformal_sigmas(config))))

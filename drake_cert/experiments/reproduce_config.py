@@ -1,19 +1,22 @@
-"""What a reproduction runs: its settings, its seed streams and its models (DESIGN 7, issue 8).
+"""What a reproduction runs: its settings, its seed streams and its models (DESIGN 7).
 
-Seeds: one root seed; every stream is a child of ``SeedSequence(root)`` addressed by its spawn
-key (:func:`seed_of`): a preset's frame choice ``(preset, FRAME_CHOICE)``, h's calibration
-``(preset, CALIBRATION, sigma index)``, g's conformal calibration ``(preset, CONFORMAL, sigma
-index)`` and each cell ``(preset, CELL, cell index)``, the index being the cell's place in
-:meth:`ReproduceConfig.cells` (a run without regression cells numbers its cells otherwise). A
-cell's blocks draw their attack and certificate noise from ``SeedSequence([cell seed,
-purpose, frame position])`` (``systems.streams``), so no attack draws the noise of the
-certificate it attacks, and a frame's rows can be recomputed alone
-(``reproduce.recompute_frame``) with the same numbers, whatever the executor.
+Seeds (the project's one scheme, :mod:`drake_cert.certification.seeds`): every stream is a named
+child of the root seed: a preset's frame choice ``frame_choice`` (preset), h's calibration
+``regression_calibration`` (preset, sigma), g's robust conformal calibration
+``conformal_calibration`` (preset, sigma), and each cell ``cell`` (:func:`cell_seed`: preset and
+what the cell is: pipeline, attack, sigma, budget). A cell's seed is the root of its Diagram
+blocks' streams (``attack``, ``selection``, ``estimation``, keyed by the frame's position), as
+a scenario's seed is in a drive. So no attack draws the noise of the certificate it attacks, a
+cell draws the same noise in any run that has it (whatever presets, pipelines or other cells
+the run holds), ``g`` and ``g_conformal`` share theirs (one attack and one certificate, read
+by two intervals), and a frame's rows can be recomputed alone (``reproduce.recompute_frame``)
+with the same numbers, whatever the executor.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -21,13 +24,14 @@ import numpy as np
 from drake_cert.config import load_conditions
 from drake_cert.errors import ConfigError
 
-PIPELINES = ("f", "g", "f_reg", "h")
+# The pipelines of a run. ``g`` reads the paper's safe-set interval off its certificate and
+# ``g_conformal`` the robust conformal interval (DESIGN 3) off the same certificate: the same
+# frames, attacks and noise, only the interval differs.
+PIPELINES = ("f", "g", "g_conformal", "f_reg", "h")
 ATTACK_KINDS = ("none", "sa", "ea")
-
-# Purposes of the seed streams (spawn-key entries; distinct by construction). A cell's
-# blocks draw their attack and certificate noise from SeedSequence([cell seed, purpose, frame])
-# (systems.streams), the cell seed being the root's child (preset, CELL, cell).
-FRAME_CHOICE, CALIBRATION, CELL, CONFORMAL = 0, 1, 2, 3
+# Whose noise a pipeline's cells draw (a spawn-key entry: the place in NOISE_OWNERS).
+NOISE_OWNERS = ("f", "g", "f_reg", "h")
+_NOISE_OWNER = {"f": "f", "g": "g", "g_conformal": "g", "f_reg": "f_reg", "h": "h"}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -46,12 +50,12 @@ class ReproduceConfig:
     batch_size: int = 250  # noisy copies per forward pass (larger batches page-fault: slower)
     attack_steps: int = 20
     attack_noise_draws: int = 8
-    regression: bool = True
+    regression: bool = True  # the regression pipelines f_reg and h
+    conformal: bool = True  # the pipeline g_conformal (g's certificates, robust conformal interval)
     calibration_per_class: int = 100  # conformal calibration frames per label
     calibration_n: int = 1000  # samples per calibration frame
     alpha_c: float = 0.01
     alpha_m: float = 0.001
-    interval: str = "safe_set"  # g's interval: "safe_set" (paper) or "conformal" (DESIGN 3)
     conformal_per_class: int = 150  # robust conformal calibration frames per label (>= 124)
     conformal_n: int = 500  # samples per conformal calibration frame
     precision: str = "auto"  # model arithmetic of attacks, certificates and calibration alike;
@@ -69,11 +73,16 @@ class ReproduceConfig:
 
     @staticmethod
     def quick(seed: int = 0) -> ReproduceConfig:
-        """A few frames per cell, small n, one budget: the CI-sized run (< 2 min on 2 cores)."""
+        """A few frames per cell, small n, one budget: the CI-sized run (< 2 min on 2 cores).
+
+        Its robust conformal calibration (4 frames per label, 50 samples each) is far below
+        the 124 frames per label that alpha_c needs, so g_conformal's label set is every label:
+        the envelope. The quick run checks the plumbing of that pipeline, not its speed."""
         return ReproduceConfig(sigmas=(0.25, 0.5, 1.0), eps=0.25, sweep_eps=(0.25,),
                                sweep_sigma=0.25, frames=2, n0=20, n=200, batch_size=200,
                                attack_steps=4, attack_noise_draws=2, calibration_per_class=6,
-                               calibration_n=100, seed=seed)
+                               calibration_n=100, conformal_per_class=4, conformal_n=50,
+                               seed=seed)
 
     def validate(self) -> None:
         conditions = load_conditions()
@@ -93,57 +102,87 @@ class ReproduceConfig:
                 raise ConfigError(f"eps = {e!r} must be a finite number >= 0")
         if not 0 < self.alpha < 1:
             raise ConfigError(f"alpha = {self.alpha!r} must be in (0, 1)")
-        if self.interval not in ("safe_set", "conformal"):
-            raise ConfigError(f"interval {self.interval!r} is not 'safe_set' or 'conformal'")
         for name in ("conformal_per_class", "conformal_n"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
 
+    @property
+    def pipelines(self) -> tuple[str, ...]:
+        """The pipelines this run evaluates, in :data:`PIPELINES` order."""
+        return tuple(p for p in PIPELINES if (self.regression or p not in ("f_reg", "h"))
+                     and (self.conformal or p != "g_conformal"))
+
     def cells(self) -> list[tuple[str, float, str, float]]:
         """Every (pipeline, sigma, attack, eps) evaluated on each frame, in a fixed order.
 
-        Main tables: f, g (each sigma), f_reg and h (each sigma), clean and under SA and EA,
-        at budget ``eps`` (a clean frame's run-time interval is also taken at ``eps``).
-        Sweep: f and g at ``sweep_sigma`` under SA and EA at every other budget (eps = 0:
-        g's clean interval at budget 0).
+        Main tables: f, g and g_conformal (each sigma), f_reg and h (each sigma), clean and
+        under SA and EA, at budget ``eps`` (a clean frame's run-time interval is also taken at
+        ``eps``). Sweep: f, g and g_conformal at ``sweep_sigma`` under SA and EA at every other
+        budget (eps = 0: g's clean interval at budget 0). Without ``regression`` (``conformal``)
+        the cells of f_reg and h (g_conformal) are left out; the others do not change.
         """
+        g_pipes = [p for p in ("g", "g_conformal") if p in self.pipelines]
         out: list[tuple[str, float, str, float]] = []
         for kind in ATTACK_KINDS:
             out.append(("f", 0.0, kind, self.eps))
-            out.extend(("g", s, kind, self.eps) for s in self.sigmas)
+            out.extend((g, s, kind, self.eps) for g in g_pipes for s in self.sigmas)
             if self.regression:
                 out.append(("f_reg", 0.0, kind, self.eps))
                 out.extend(("h", s, kind, self.eps) for s in self.sigmas)
         for eps in sorted(set(self.sweep_eps) - {self.eps}):
             if eps == 0:
-                out.append(("g", self.sweep_sigma, "none", 0.0))
+                out.extend((g, self.sweep_sigma, "none", 0.0) for g in g_pipes)
                 continue
             for kind in ("sa", "ea"):
-                out += [("f", 0.0, kind, eps), ("g", self.sweep_sigma, kind, eps)]
+                out.append(("f", 0.0, kind, eps))
+                out.extend((g, self.sweep_sigma, kind, eps) for g in g_pipes)
         return out
 
 
+@functools.cache  # the shipped conditions table: read once
 def preset_key(preset: str) -> int:
     """A preset's stable spawn-key entry: its position in the conditions table (not in the
     run's preset list), so a preset gets the same frames and streams in any selection."""
     return [p.name for p in load_conditions().presets].index(preset)
 
 
-def seed_of(config: ReproduceConfig, *key: int) -> int:
-    """A 63-bit integer seed of the stream with spawn key ``key`` under the root seed."""
-    from drake_cert.certification.seeds import seed_from_sequence
+def noise_cell(cell: tuple[str, float, str, float]) -> tuple[str, float, str, float]:
+    """The cell whose attack and certificate ``cell`` shares: itself, or for g_conformal the g
+    cell of the same sigma, attack and budget."""
+    pipeline, sigma, kind, eps = cell
+    return (_NOISE_OWNER[pipeline], sigma, kind, eps)
 
-    return seed_from_sequence(np.random.SeedSequence(entropy=config.seed,
-                                                     spawn_key=tuple(int(k) for k in key)))
+
+def cell_seed(config: ReproduceConfig, preset: str, cell: tuple[str, float, str, float]) -> int:
+    """The root seed of one cell's streams on every frame of ``preset``: stream ``cell``
+    (preset, noise owner, attack, sigma, eps) of the run's root seed, keyed by what the cell is
+    (:func:`noise_cell`), not by its place in the run's cell list, so a run with fewer presets,
+    pipelines, sigmas or budgets draws the same noise for a cell as the full run."""
+    from drake_cert.certification.seeds import Purpose, child_seed, float_key
+
+    owner, sigma, kind, eps = noise_cell(cell)
+    return child_seed(config.seed, Purpose.CELL, preset_key(preset), NOISE_OWNERS.index(owner),
+                      ATTACK_KINDS.index(kind), float_key(sigma), float_key(eps))
 
 
-def frame_indices(config: ReproduceConfig, preset_index: int, labels) -> np.ndarray:
-    """The test frames of a preset: round-robin over classes from a seeded permutation."""
+def calibration_seed(config: ReproduceConfig, purpose, preset: str, sigma: float) -> int:
+    """The seed of a calibration of (preset, sigma): stream ``purpose`` (preset, sigma) of the
+    root (``regression_calibration`` for h's beta, ``conformal_calibration`` for g_conformal)."""
+    from drake_cert.certification.seeds import child_seed, float_key
+
+    return child_seed(config.seed, purpose, preset_key(preset), float_key(sigma))
+
+
+def frame_indices(config: ReproduceConfig, preset: str, labels) -> np.ndarray:
+    """The test frames of a preset: round-robin over classes from a seeded permutation
+    (stream ``frame_choice`` (preset) of the root seed)."""
+    from drake_cert.certification.seeds import Purpose, child_seed
     from drake_cert.experiments.perception_eval import select_frames
 
-    return select_frames(labels, config.frames, seed_of(config, preset_index, FRAME_CHOICE))
+    return select_frames(labels, config.frames,
+                         child_seed(config.seed, Purpose.FRAME_CHOICE, preset_key(preset)))
 
 
 @dataclasses.dataclass(frozen=True)
