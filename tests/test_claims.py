@@ -1,6 +1,12 @@
 """The paper's claims checked on per-frame rows: each claim flips when the rows contradict it."""
 
-from drake_cert.experiments.claims import check_claims, markdown
+from drake_cert.experiments.claims import (
+    check_claims,
+    claims_document,
+    document_markdown,
+    markdown,
+    preset_claims,
+)
 
 
 def row(pipeline, attack, eps, *, sigma=0.0, left=False, v=10.0, certified=False, position=0):
@@ -73,3 +79,25 @@ def test_departures_are_split_by_whether_the_certified_range_holds_the_true_labe
     c = check_claims(rows, 0.25)["p"]
     assert not c["holds"]["g_zero_instability_where_the_certified_range_holds_the_true_label"]
     assert "range holds the true label" in markdown({"p": c}, 0.25)
+
+
+def test_claims_lead_with_the_unconditioned_headline_and_keep_the_split_as_a_diagnostic():
+    """claims.json and claims.md open with the departures not conditioned on the truth (f
+    beside g); the split by the true label follows, for f as for g, then claims 1-4."""
+    rows = frame(0, g_left=True) + frame(1, f_left=False)
+    for r in rows:
+        if r["position"] == 0 and r["attack"] == "sa":
+            r["design_labels"] = "grippy"  # g's and f's ranges miss "dry" on frame 0
+    doc = claims_document(rows, 0.25, resamples=200)
+    assert list(doc)[:3] == ["headline", "truth_conditioned_diagnostic", "p"]
+    assert preset_claims(doc) == {"p": check_claims(rows, 0.25)["p"]}
+    g = next(r for r in doc["headline"]["rows"] if r["pipeline"] == "g"
+             and r["selection"] == "all" and r["preset"] == "all")
+    assert (g["departures"], g["episodes"]) == (1, 4)
+    split = doc["truth_conditioned_diagnostic"]
+    assert split["g"]["holds"]["departures"] == split["f"]["holds"]["departures"] == 0
+    assert split["f"]["misses"] == dict(departures=1, episodes=1)  # frame 0's f under SA
+    text = document_markdown(doc, 0.25, "conformal")
+    assert text.startswith("**Left the lane, not conditioned on the truth**")
+    assert text.index("Diagnostic: split") < text.index("**1. f is unstable under SA**")
+    assert "g (robust conformal interval)" in text  # the run's interval names g

@@ -1,6 +1,11 @@
-"""The paper's claims, checked on a reproduction's per-frame rows (issue 8's Done-when).
+"""The paper's claims, checked on a reproduction's per-frame rows (DESIGN 7.3).
 
-Per preset, over the frames the run holds:
+``claims.md`` and ``claims.json`` (:func:`claims_document`) lead with the headline of
+:mod:`drake_cert.experiments.headline`: per pipeline, the share of (certified) attacked
+episodes and of frames that left the lane, not conditioned on the truth, with intervals that
+account for clustering by frame, beside f at the same budget; then the split by whether the
+certified label range holds the true label, as a diagnostic for every pipeline alike. Then,
+per preset, over the frames the run holds:
 1. the non-robust pipeline f is unstable under the safety attack (SA): share of f's episodes
    that left the lane, per budget;
 2. f loses speed under the efficiency attack (EA): mean velocity per budget against clean;
@@ -14,16 +19,23 @@ Per preset, over the frames the run holds:
    design was synthesized for the true condition's stiffness and a friction no higher than the
    true one, so a departure there would be the controller's failure; where it misses, the
    perception claim failed (for the safe-set interval whenever g is wrong clean; for the
-   robust conformal interval with probability at most its alpha_total);
+   robust conformal interval with probability at most its alpha_total). The split is a
+   diagnostic of the controller designs, not a test of the certificate: where the range holds
+   the true label even f does not leave its lane;
 4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
 
 Shares carry their 95% Clopper-Pearson interval (two-sided; the upper bound of claim 3 is
-the interval's upper end), counted over episodes, each a different (frame, cell).
+the interval's upper end), counted over episodes, each a different (frame, cell): they treat
+episodes as independent, which departures clustered on a few frames are not; the headline's
+intervals account for that.
 """
 
 from __future__ import annotations
 
 import numpy as np
+
+from drake_cert.experiments import headline
+from drake_cert.experiments.headline import holds_true_label
 
 SPEED_KEPT = 0.8  # claim 4: the least share of g's clean speed kept under EA
 
@@ -41,10 +53,6 @@ def _share(hits: int, total: int) -> dict:
 def _velocity(rows: list[dict]) -> float:
     return float(np.mean([r["velocity_mps"] for r in rows])) if rows else float("nan")
 
-
-def holds_true_label(row: dict) -> bool:
-    """Whether the label range of the design g's interval selected holds the true label."""
-    return row["true_label"] in row["design_labels"].split("+")
 
 
 
@@ -86,6 +94,21 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                 cell("g", "ea", main_eps, s))
             kept[s] = dict(clean_mps=clean, ea_mps=ea, kept=ea / clean if clean > 0 else
                            float("nan"))
+        # g_conformal: the same certificates read by the robust conformal interval
+        conformal = [r for r in mine if r["pipeline"] == "g_conformal" and r["attack"] != "none"
+                     and r["certified"]]
+        conformal_kept = {}
+        for s in sorted({r["sigma"] for r in mine if r["pipeline"] == "g_conformal"}):
+            clean, ea = _velocity(cell("g_conformal", "none", main_eps, s)), _velocity(
+                cell("g_conformal", "ea", main_eps, s))
+            conformal_kept[str(s)] = dict(clean_mps=clean, ea_mps=ea,
+                                          kept=ea / clean if clean > 0 else float("nan"))
+        with_conformal = {} if not conformal_kept else dict(
+            g_conformal_inside_certificate=_share(sum(r["left_lane"] for r in conformal),
+                                                  len(conformal)),
+            g_conformal_certified_range_misses_true_label=_share(
+                sum(not holds_true_label(r) for r in conformal), len(conformal)),
+            g_conformal_ea_speed_kept=conformal_kept)
         out[preset] = dict(
             frames=len({r["position"] for r in mine}),
             f_clean_velocity_mps=f_clean,
@@ -100,6 +123,7 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                                                        len(certified)),
             g_departures_inside_certificate=departures,
             g_ea_speed_kept={str(s): v for s, v in kept.items()},
+            **with_conformal,
             holds=dict(
                 f_unstable_under_sa=any(v["hits"] > 0 for v in f_sa.values()),
                 f_slower_under_ea=any(v < f_clean for v in f_ea.values()),
@@ -142,15 +166,27 @@ def markdown(claims: dict, main_eps: float) -> str:
               row("left the lane", lambda c: pct(c["g_inside_certificate"])),
               row("... on frames g labels right when clean",
                   lambda c: pct(c["g_inside_certificate_clean_right"])),
-              row("... where the certified label range holds the true label",
+              row("... where the certified label range holds the true label (a diagnostic: "
+                  "f does not leave its lane there either, see above)",
                   lambda c: pct(c["g_inside_certificate_range_holds"])),
               row("certified label range misses the true label",
                   lambda c: pct(c["g_certified_range_misses_true_label"]))]
+    conformal = all("g_conformal_inside_certificate" in c for c in claims.values())
+    if conformal:  # the same certificates, read by the robust conformal interval
+        lines += [row("g_conformal (robust conformal interval): left the lane",
+                      lambda c: pct(c["g_conformal_inside_certificate"])),
+                  row("g_conformal: certified label range misses the true label",
+                      lambda c: pct(c["g_conformal_certified_range_misses_true_label"]))]
     lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
               f"(claim: >= {SPEED_KEPT:.0%})", "", head]
     lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
         c["g_ea_speed_kept"][str(s)]["ea_mps"], c["g_ea_speed_kept"][str(s)]["clean_mps"],
         c["g_ea_speed_kept"][str(s)]["kept"])) for s in sigmas]
+    if conformal:
+        lines += [row(f"sigma = {s:g}, g_conformal", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}"
+                      .format(*(c["g_conformal_ea_speed_kept"][str(s)][k]
+                                for k in ("ea_mps", "clean_mps", "kept"))))
+                  for s in sigmas]
     lines += ["", "**Holds?**", "", head]
     for key in next(iter(claims.values()))["holds"]:
         lines.append(row(key.replace("_", " "), lambda c, k=key: "yes" if c["holds"][k] else "NO"))
@@ -167,5 +203,30 @@ def markdown(claims: dict, main_eps: float) -> str:
         lines += ["", "A certified label range holds on the whole eps-ball, the clean frame "
                   "included: where g's clean label is already wrong, the certificate carries "
                   "that error (the safe-set interval's standing assumption; the robust "
-                  "conformal interval, `--interval conformal`, does not rest on it)."]
+                  "conformal interval, pipeline g_conformal, does not rest on it)."]
     return "\n".join(lines) + "\n"
+
+
+def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headline.RESAMPLES,
+                    seed: int = headline.SEED) -> dict:
+    """What ``claims.json`` holds, in this order: ``headline`` (:func:`headline.headline`),
+    ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), then claims 1-4 per
+    preset (:func:`check_claims`, one key per preset)."""
+    return dict(headline=headline.headline(rows, resamples=resamples, seed=seed),
+                truth_conditioned_diagnostic=headline.truth_conditioned(rows),
+                **check_claims(rows, main_eps))
+
+
+def preset_claims(document: dict) -> dict:
+    """The per-preset part of a :func:`claims_document` (or of a ``claims.json`` read back)."""
+    return {k: v for k, v in document.items()
+            if k not in ("headline", "truth_conditioned_diagnostic")}
+
+
+def document_markdown(document: dict, main_eps: float, interval: str = "safe_set") -> str:
+    """``claims.md``: the headline and its diagnostic first, then claims 1-4 per preset;
+    ``interval``: the run's interval for ``g`` (names it in the headline)."""
+    return (headline.markdown(document["headline"], document["truth_conditioned_diagnostic"],
+                              main_eps=main_eps, names=headline.display_names(interval))
+            + "\n**The paper's claims, per preset**\n\n"
+            + markdown(preset_claims(document), main_eps))

@@ -3,7 +3,8 @@
 ``results.csv``   one row per cell (see :mod:`drake_cert.experiments.tables`)
 ``frames.csv``    one row per frame and cell, with the frame's seed (recomputable alone)
 ``tables.md``     the paper's tables, ours beside the paper's numbers
-``claims.md``     the paper's claims checked on the frames (:mod:`.claims`; also ``claims.json``)
+``claims.md``     the headline (departures not conditioned on the truth, :mod:`.headline`), then
+                  the paper's claims checked on the frames (:mod:`.claims`; also ``claims.json``)
 ``meta.json``     command line, git revision, root seed, configuration, wall time
 ``sweep.png``     share certified, velocity and instability of f and g against eps
 ``radii.png``     certified-radius distributions of g per preset and sigma
@@ -38,12 +39,14 @@ def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], co
     from drake_cert.experiments import claims
 
     out = Path(out_dir)
-    checked = claims.check_claims(rows, config.eps)
+    checked = claims.claims_document(rows, config.eps)
+    interval = getattr(config, "interval", "safe_set")
     written = [
         atomic_write_text(out / "results.csv", tables.to_csv(summary)),
         atomic_write_text(out / "frames.csv", tables.to_csv(rows, FRAME_COLUMNS)),
         atomic_write_text(out / "tables.md", tables.markdown(summary, config, conditions)),
-        atomic_write_text(out / "claims.md", claims.markdown(checked, config.eps)),
+        atomic_write_text(out / "claims.md", claims.document_markdown(checked, config.eps,
+                                                                      interval)),
         atomic_write_text(out / "claims.json", json.dumps(json_safe(checked), indent=1) + "\n"),
         atomic_write_text(out / "meta.json", json.dumps(
             dict(meta, config=dataclasses.asdict(config)), indent=2) + "\n"),

@@ -1,0 +1,72 @@
+"""tables.md sets beside ours only the paper's numbers of the same metric; the rest stand in
+their own rows and columns, and the header says what the data, budget and columns are."""
+
+import re
+from types import SimpleNamespace
+
+import pytest
+
+from drake_cert.config import load_conditions
+from drake_cert.experiments import tables
+
+PRESETS = ("carla-like", "rtk-like", "robotcar-like")
+SIGMAS = (0.25, 0.5, 1.0)
+
+
+def frame_rows():
+    rows = []
+    for preset in PRESETS:
+        for pipeline, sigmas in (("f", (0.0,)), ("g", SIGMAS)):
+            for sigma in sigmas:
+                for attack in ("none", "sa", "ea"):
+                    rows.append(dict(preset=preset, task="classify", pipeline=pipeline,
+                                     sigma=sigma, attack=attack, eps=0.25, predicted="a",
+                                     true_label="a", left_lane=attack == "sa",
+                                     velocity_mps=12.0, certificate=0.4, certified=True,
+                                     interval_covers=True))
+    return rows
+
+
+@pytest.fixture(scope="module")
+def text():
+    config = SimpleNamespace(presets=PRESETS, sigmas=SIGMAS, eps=0.25, sweep_eps=(0.0, 0.25),
+                             sweep_sigma=0.5, frames=1, n0=10, n=100, alpha=0.001, seed=0,
+                             regression=False)
+    return tables.markdown(tables.summarize(frame_rows(), 0.25, 0), config, load_conditions())
+
+
+def test_the_papers_other_metrics_never_stand_in_parentheses_beside_ours(text):
+    inside = set(re.findall(r"\((\d+\.\d+)\)", text))
+    same = {f"{v:.2f}" for key, paper in tables.PAPER.items() for m, v in paper.items()
+            if m in tables.SAME_METRICS and key[0] in ("f_clean", "f_attack", "g_ea")}
+    assert inside and inside <= same  # only accuracy and velocity, e.g. (98.60), (29.42)
+    assert "(98.60)" in text
+    for undefined in ("(200.00)", "(6.36)", "(0.61)", "(37.50)"):
+        assert undefined not in text  # instability and tau of the paper: not ours
+    assert "| paper's instability under SA | 200.00 | 37.50 | 61.50 |" in text
+
+
+def test_the_certificate_columns_say_whose_radius_they_are(text):
+    sa_head = next(line for line in text.splitlines() if line.startswith("| sigma | carla-like"))
+    assert "carla-like label-range radius | carla-like paper's instability | " \
+           "carla-like paper's tau" in sa_head
+    row = next(line for line in text.splitlines() if line.startswith("| 0.25 | 100.00 |"))
+    assert row.split(" | ")[1:5] == ["100.00", "0.40", "6.36", "0.61"]  # ours, ours, paper's
+    assert "radius of the predicted label's safe set" in text
+
+
+def test_the_header_names_the_synthetic_presets_and_the_papers_budget(text):
+    first = text.splitlines()[0]
+    assert first.startswith("**Data: synthetic presets.**")
+    assert "procedurally generated 64x64 RGB frames standing in for the paper's CARLA, RTK and " \
+           "RobotCar" in first
+    assert "delta = 255" in text and "delta = 255 is eps = 1 here" in text
+    assert "a budget this run did not evaluate" in text  # this sweep stops at 0.25
+
+
+def test_labels_and_friction_not_in_the_papers_table_are_flagged(text):
+    assert "| robotcar-like | rain | 40-80 | not in the paper |" in text
+    assert "| carla-like | sunny | 80-120 | 80-120 | 0.9 |" in text
+    assert "sunny, snow (ours adds rain, not in the paper)" in text
+    assert "friction mu per label (the paper gives only cornering stiffness" in text
+    assert "robotcar-like rain (not in, or not as in, the paper's Table I)" in text

@@ -1,0 +1,174 @@
+"""The reproduction's headline: departures counted without conditioning on the truth, with
+intervals that account for departures clustering by frame."""
+
+import hashlib
+import json
+from pathlib import Path
+
+import pytest
+
+from drake_cert.certification.statistics import clopper_pearson_one_sided
+from drake_cert.errors import ConfigError
+from drake_cert.experiments import headline as hl
+from drake_cert.experiments.outputs import FRAME_COLUMNS
+from drake_cert.experiments.tables import to_csv
+
+PAPER = Path(__file__).resolve().parents[1] / "results" / "paper"
+
+
+def episode(frame, pipeline, *, left=False, certified=True, attack="sa", eps=0.25,
+            design="dry", preset="p", sigma=0.5):
+    return dict(preset=preset, frame=frame, position=frame, pipeline=pipeline, attack=attack,
+                eps=eps, sigma=sigma, certified=certified, left_lane=left, true_label="dry",
+                design_labels=design)
+
+
+def find(result, pipeline, selection=hl.ALL, preset=hl.ALL):
+    return next(r for r in result["rows"] if r["pipeline"] == pipeline
+                and r["selection"] == selection and r["preset"] == preset)
+
+
+def test_departures_the_truth_split_would_hide_are_counted_and_f_is_beside_g():
+    """g left its lane under a certified range that missed the true label: the headline counts
+    it; the truth-conditioned split shows 0 for g and for f alike."""
+    rows = []
+    for k in range(10):
+        wrong = k < 2  # two frames whose certified range misses "dry"
+        rows += [episode(k, "g", left=wrong, design="grippy" if wrong else "dry+wet"),
+                 episode(k, "g", attack="none", left=False),
+                 episode(k, "g", certified=False, attack="ea"),  # not certified: not counted
+                 episode(k, "f", certified=False, left=k < 5, design="grippy" if k < 5 else "dry")]
+    result = hl.headline(rows, resamples=500)
+    g, f = find(result, "g"), find(result, "f")
+    assert (g["departures"], g["episodes"], g["attacked"]) == (2, 10, 20)
+    assert (g["frames_departed"], g["frames"]) == (2, 10)
+    assert g["certified_only"] and not f["certified_only"]
+    assert (f["departures"], f["episodes"]) == (5, 10)  # f: every attacked episode
+    split = hl.truth_conditioned(rows)
+    assert split["g"]["holds"] == dict(departures=0, episodes=8)
+    assert split["f"]["holds"] == dict(departures=0, episodes=5)
+    assert split["g"]["misses"] == dict(departures=2, episodes=2)
+    text = hl.markdown(result, split, main_eps=0.25, names={"g": "g (safe-set interval)"})
+    assert text.startswith("**Left the lane, not conditioned on the truth**")
+    assert "2 / 10 = 20.00%" in text and "g (safe-set interval)" in text
+    assert "tests the controller designs, not the certificate" in text
+
+
+def per_episode_cp_width(hits, total):
+    lo, hi = clopper_pearson_one_sided(hits, total, 0.025)
+    return float(hi - lo)
+
+
+def test_departures_clustered_on_few_frames_widen_the_interval_past_per_episode_bounds():
+    clustered, spread = [], []
+    for k in range(40):
+        clustered += [episode(k, "g", left=k < 4) for _ in range(10)]  # 4 frames, 10 each
+        spread += [episode(k, "g", left=j == 0) for j in range(10)]  # one on every frame
+    a = hl.headline(clustered, resamples=2000)
+    b = hl.headline(spread, resamples=2000)
+    wa, wb = (find(r, "g")["ci95_pct"][1] - find(r, "g")["ci95_pct"][0] for r in (a, b))
+    cp = 100 * per_episode_cp_width(40, 400)
+    assert find(a, "g")["pct"] == find(b, "g")["pct"] == 10.0
+    assert wa > 2.0 * cp  # clustered: far wider than Clopper-Pearson over episodes
+    assert wb < 0.5 * cp  # every frame alike: no more spread than frames give
+    assert find(a, "g")["frames_departed"] == 4 and find(b, "g")["frames_departed"] == 40
+
+
+def test_the_bootstrap_is_fixed_by_its_seed_and_stated():
+    rows = [episode(k, "g", left=k % 7 == 0 and j < 3) for k in range(30) for j in range(5)]
+    one, two = hl.headline(rows, resamples=300, seed=4), hl.headline(rows, resamples=300, seed=4)
+    assert one == two
+    assert "300 resamples, seed 4" in one["method"]
+    assert "300 resamples, seed 4" in hl.markdown(one)
+
+
+def test_no_departure_takes_the_exact_bound_over_frames():
+    """With nothing to resample, the interval is Clopper-Pearson over frames: wider than over
+    episodes, never [0, 0]."""
+    rows = [episode(k, "g") for k in range(50) for _ in range(10)]
+    g = find(hl.headline(rows, resamples=100), "g")
+    _, up = clopper_pearson_one_sided(0, 50, 0.025)
+    assert g["ci95_pct"] == pytest.approx([0.0, 100 * float(up)])
+    assert g["ci95_pct"][1] > 100 * per_episode_cp_width(0, 500)
+
+
+def test_pipelines_are_counted_by_whatever_name_they_carry():
+    rows = [episode(k, name, left=(name == "g_conformal" and k == 0)) for k in range(5)
+            for name in ("g", "g_conformal")]
+    rows += [episode(k, "f", certified=False, preset="q") for k in range(5)]
+    result = hl.headline(rows, resamples=100)
+    assert {r["pipeline"] for r in result["rows"]} == {"g", "g_conformal", "f"}
+    assert find(result, "g_conformal")["departures"] == 1
+    assert find(result, "f", preset="q")["episodes"] == 5
+    assert find(result, "g", "SA eps = 0.25", "p")["episodes"] == 5
+    text = hl.markdown(result, main_eps=0.25, names=hl.display_names("safe_set"))
+    assert "g (robust conformal interval)" in text and "g (safe-set interval)" in text
+
+
+def test_frame_rows_read_back_from_csv_as_written(tmp_path):
+    rows = [dict(episode(k, "g", left=k == 1), seed=f"0/0/{k}", task="classify",
+                 stiffness_n_per_rad=50_000.0, friction_mu=0.6, predicted="dry",
+                 interval_lo=40_000.0, interval_hi=60_000.0, interval_covers=True,
+                 certificate=0.5, safe_set_radius=float("inf"), velocity_mps=12.5,
+                 peak_abs_e1_m=0.2) for k in range(3)]
+    path = tmp_path / "frames.csv"
+    path.write_text(to_csv(rows, FRAME_COLUMNS))
+    back = hl.read_frames_csv(path, rename={"g": "g_conformal"})
+    assert [r["pipeline"] for r in back] == ["g_conformal"] * 3
+    assert [dict(r, pipeline="g") for r in back] == rows
+
+
+def test_a_missing_or_foreign_file_is_one_readable_error(tmp_path):
+    with pytest.raises(ConfigError, match="cannot read frame rows"):
+        hl.read_frames_csv(tmp_path / "nope.csv")
+    (tmp_path / "x.csv").write_text("a,b\n1,2\n")
+    with pytest.raises(ConfigError, match="not a reproduction's frames.csv: no column preset"):
+        hl.read_frames_csv(tmp_path / "x.csv")
+
+
+# frames.csv of results/paper as a recount found it (safe-set g; companions: conformal g)
+RECOUNTED = {"frames.csv": "ec32320681e45b3a004974f8d26af8f4b933d36ab4208c3407b45d7c26082804",
+             "conformal_carla/frames.csv":
+             "9eb45f89464ea687a268a366bb7678704f20169bc41136460f7bad4109423883",
+             "conformal_rtk/frames.csv":
+             "1dcfc0c34f381c90e0ef74b34665c162a827981a32054cf1375d9781a9737249",
+             "conformal_robotcar/frames.csv":
+             "76a18d20699682664591ed9f3d0520ca53290567d5c834a811b2449663a06e25"}
+
+
+def test_the_committed_reproduction_gives_the_independent_recount():
+    """From results/paper/frames.csv: whatever run is committed, the headline's g departures
+    are claims.json's per-preset ones summed; on the run that was recounted, the recount's
+    figures."""
+    rows = hl.read_frames_csv(PAPER / "frames.csv")
+    claims = json.loads((PAPER / "claims.json").read_text())
+    g = [r for r in rows if r["pipeline"] == "g" and r["attack"] != "none"]
+    safe_set = hl.departure_shares(g, certified_only=True, resamples=200)
+    presets = [p for p in claims if "g_inside_certificate" in claims[p]]
+    assert safe_set["departures"] == sum(claims[p]["g_inside_certificate"]["hits"]
+                                         for p in presets)
+    assert safe_set["episodes"] == sum(claims[p]["g_inside_certificate"]["total"]
+                                       for p in presets)
+    if any(not (PAPER / name).exists()
+           or hashlib.sha256((PAPER / name).read_bytes()).hexdigest() != digest
+           for name, digest in RECOUNTED.items()):
+        pytest.skip("results/paper was regenerated after the recount")
+    assert (safe_set["departures"], safe_set["episodes"]) == (80, 2888)
+    assert round(safe_set["pct"], 2) == 2.77
+    assert (safe_set["frames_departed"], safe_set["frames"]) == (25, 300)
+    f = [r for r in rows if r["pipeline"] == "f" and r["attack"] == "sa" and r["eps"] == 0.25]
+    f_share = hl.departure_shares(f, certified_only=False, resamples=200)
+    assert (f_share["departures"], f_share["episodes"]) == (44, 300)
+    conformal = [r for p in ("carla", "rtk", "robotcar")
+                 for r in hl.read_frames_csv(PAPER / f"conformal_{p}" / "frames.csv")
+                 if r["pipeline"] == "g" and r["attack"] != "none"]
+    robust = hl.departure_shares(conformal, certified_only=True, resamples=200)
+    assert (robust["departures"], robust["episodes"]) == (2, 2332)
+    assert (robust["frames_departed"], robust["frames"]) == (1, 268)
+    # the truth-conditioned split: 0 departures where the range holds, for f as for g
+    split = hl.truth_conditioned(rows)
+    assert split["g"]["holds"] == dict(departures=0, episodes=2751)
+    assert split["f"]["holds"] == dict(departures=0, episodes=1502)
+    # departures cluster: the bootstrap interval is wider than Clopper-Pearson over episodes
+    lo, hi = safe_set["ci95_pct"]
+    assert hi - lo > 100 * per_episode_cp_width(80, 2888)
