@@ -1,9 +1,10 @@
 """drake-cert: certified robust perception-based lateral control (Yang et al., ACC 2023).
 
 The public API, in the order a user meets it (the README's ten-line example runs it):
-load the vehicle, conditions and settings; synthesize a design for a stiffness interval;
-simulate the closed loop; read the tape with :mod:`drake_cert.metrics`; load a scenario and
-drive it through the certified Diagram.
+load the vehicle, conditions and settings; synthesize a design for a stiffness interval (or
+the table); re-check a saved table independently (:func:`verify_design_table`, a
+:class:`VerificationReport`); simulate the closed loop; read the tape with
+:mod:`drake_cert.metrics`; load a scenario and drive it through the certified Diagram.
 
 Packages: ``drake_cert`` (foundation: config, errors, io, dynamics, metrics; subpackages
 ``perception``, ``certification``, ``experiments``, ``cli``), ``synthesis`` (convex gain
@@ -24,6 +25,7 @@ _PUBLIC = {
     "Settings": "drake_cert.config",
     "DrakeCertError": "drake_cert.errors",
     "ConfigError": "drake_cert.errors",
+    "DesignFormatError": "drake_cert.errors",
     "InfeasibleDesign": "drake_cert.errors",
     "CertificationError": "drake_cert.errors",
     "metrics": "drake_cert.metrics",
@@ -33,6 +35,8 @@ _PUBLIC = {
     "ControllerDesign": "synthesis.design",
     "load_design_file": "synthesis.design_io",
     "save_design_table": "synthesis.design_io",
+    "verify_design_table": "synthesis.verify",
+    "VerificationReport": "synthesis.verify",
     "common_lyapunov_certificate": "synthesis.switching",
     # systems
     "Road": "systems.road",

@@ -8,7 +8,8 @@ b. ``reference_stability``: the reference system (the loop with the true uncerta
    place of its estimate) ``[[A(C) - b(C) k_m, b(C)], [-k theta', -k w]]`` is Hurwitz for
    every C in the interval and every speed in ``[V_min, V]``; margin ``-max Re eig`` (1/s).
 c. ``steady_state_offset``: lane margin minus ``max_C |e1|`` at the equilibrium of the
-   adaptive loop on the design curvature (``synthesis.equilibrium``); metres.
+   adaptive loop on the design curvature (``synthesis.equilibrium``); metres (stored as
+   ``steady_state_lane_margin_m``: the lane margin left at that equilibrium).
 d. ``grip``: the tire as it is at the slip the design admits. The Fiala tire's secant
    stiffness over normalised slips ``z = C |tan a| / (3 mu F_z) <= z_b`` lies in
    ``[C (1 - z_b + z_b^2/3), C]``; a, b and c are evaluated on the widened interval
@@ -28,6 +29,7 @@ from drake_cert.dynamics import (
     fiala_secant_ratio,
     lateral_error_dynamics,
 )
+from synthesis.design import MARGIN_KEYS as MARGIN_KEYS  # the stored margins, re-exported
 from synthesis.equilibrium import adaptive_steady_states, piecewise_constant_steady_states
 from synthesis.gains import solve_sdp
 from synthesis.l1_norm import integral_abs_exponential_sums, l1_norm
@@ -45,16 +47,6 @@ GRIP = "grip"
 GRADIENT = "gradient"  # adaptation laws (settings.controller.adaptation_law)
 PIECEWISE_CONSTANT = "piecewise_constant"
 CONDITIONS = (L1_CONDITION, REFERENCE_STABILITY, STEADY_STATE_OFFSET, GRIP)
-
-# margin keys stored in ControllerDesign.margins (units in the name)
-MARGIN_KEYS = {
-    "gain_decay_per_s": "alpha-shifted stability of A - b k_m: -(max Re eig) - alpha",
-    "l1_condition": "1 - ||G||_L1 L (dimensionless)",
-    "reference_stability_per_s": "-(max Re eig) of the reference system over [V_min, V]",
-    "steady_state_offset_m": "lane margin - max |e1| at equilibrium on the design curve",
-    "grip_normalised_slip": "normalised_slip_max - steady tire slip z at mu_lo (Fiala)",
-    "grip_lateral_accel_mps2": "lateral_accel_fraction mu_lo g - V^2 / R",
-}
 
 
 def filtered_plant_realisation(nominal: NominalModel, w: float, k: float):

@@ -11,6 +11,19 @@ import numpy as np
 
 from drake_cert.dynamics import fiala_secant_ratio
 
+# The keys of ControllerDesign.margins (units in the name); each is > 0 where its condition
+# holds. Kept here, with the design that stores them, so that reading a design file needs no
+# solver import; ``synthesis.conditions`` re-exports them.
+MARGIN_KEYS = {
+    "gain_decay_per_s": "alpha-shifted stability of A - b k_m: -(max Re eig) - alpha",
+    "l1_condition": "1 - ||G||_L1 L (dimensionless)",
+    "reference_stability_per_s": "-(max Re eig) of the reference system over [V_min, V]",
+    "steady_state_lane_margin_m": "lane margin left at the adaptive equilibrium on the design "
+                                  "curve: lane_margin_m - max_C |e1| (m)",
+    "grip_normalised_slip": "normalised_slip_max - steady tire slip z at mu_lo (Fiala)",
+    "grip_lateral_accel_mps2": "lateral_accel_fraction mu_lo g - V^2 / R",
+}
+
 
 @dataclasses.dataclass
 class ControllerDesign:
@@ -31,10 +44,10 @@ class ControllerDesign:
     filter_gain: float  # k of D(s) = 1/s; filter bandwidth is k * w (rad/s)
     speed_mps: float  # safe design speed (m/s); 0: stop
     failed_condition: str = ""  # "" when a safe speed exists
-    margins: dict[str, float] = dataclasses.field(default_factory=dict)
-    # normalised tire slip bound z_b = C |tan a| / (3 mu_lo F_z) the design admits (DESIGN
-    # 5.3d): it covers the Fiala secant stiffness down to C_lo (1 - z_b + z_b^2/3); 0 means a
-    # linear tire (the certified interval is the label interval)
+    margins: dict[str, float] = dataclasses.field(default_factory=dict)  # MARGIN_KEYS
+    # normalised tire slip bound z_b = C |tan a| / (3 mu_lo F_z) the design admits
+    # (DESIGN 5.3d): it covers the Fiala secant stiffness down to C_lo (1 - z_b + z_b^2/3);
+    # 0 means a linear tire (the certified interval is the label interval)
     tire_slip_bound: float = 0.0
     certified_law: str = "piecewise_constant"  # adaptation law conditions b and c are for
 

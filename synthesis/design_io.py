@@ -2,7 +2,7 @@
 
 A design table file (``drake-cert synthesize --out``)::
 
-    schema_version: 1
+    schema_version: 3
     provenance: {schema_version, command, git_revision, seed, created_utc}
     vehicle: {...}        # VehicleParams used
     settings: {...}       # Settings used (controller and synthesis)
@@ -16,8 +16,14 @@ then notes its absence). It is not part of any design, so the reproduction's run
 which hashes the designs only, does not depend on it.
 
 A single-design file has ``design: {...}`` instead of ``designs``. Loading checks every key
-and value and raises :class:`DesignFormatError` naming the file and the offending key.
-Files are written atomically.
+and value (a design's ``margins`` keys are :data:`synthesis.design.MARGIN_KEYS`) and raises
+:class:`DesignFormatError` naming the file and the offending key. Files are written
+atomically.
+
+Schema versions: 2 added ``tire_slip_bound`` and ``certified_law`` (version 1 files, certified
+with an older grip rule, are refused); 3 renamed the margin ``steady_state_offset_m`` to
+``steady_state_lane_margin_m`` (it always held the lane margin left at the steady state, not
+an offset). A version 2 file is read with that one key renamed, which changes nothing else.
 """
 
 import dataclasses
@@ -34,10 +40,13 @@ from drake_cert.config import (
 )
 from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
-from synthesis.design import ControllerDesign
+from synthesis.design import MARGIN_KEYS, ControllerDesign
 from synthesis.switching import SwitchingCertificate, certificate_from_dict, certificate_to_dict
 
-DESIGN_SCHEMA_VERSION = 2  # 2: tire_slip_bound, certified_law; Fiala grip rule
+DESIGN_SCHEMA_VERSION = 3  # 2: tire_slip_bound, certified_law; Fiala grip rule.
+# 3: margin steady_state_offset_m renamed steady_state_lane_margin_m
+# older schema versions still read: version -> {old margin key: new margin key}
+RENAMED_MARGINS = {2: {"steady_state_offset_m": "steady_state_lane_margin_m"}}
 TOP_KEYS_REQUIRED = ("schema_version", "provenance", "vehicle", "settings")
 TOP_KEYS_OPTIONAL = ("conditions", "designs", "design", "switching")
 
@@ -149,14 +158,15 @@ def parse_design_table(raw, where: str) -> DesignTable:
     for key in TOP_KEYS_REQUIRED:
         if key not in raw:
             raise DesignFormatError(f"{where}: missing top-level key {key!r}")
+    readable = " and ".join(str(v) for v in sorted({*RENAMED_MARGINS, DESIGN_SCHEMA_VERSION}))
     if raw["schema_version"] == 1:
         raise DesignFormatError(
             f"{where}: schema_version = 1: a design table certified with the old slip-angle "
-            "grip rule and the gradient law's conditions; this version reads "
-            f"{DESIGN_SCHEMA_VERSION} (re-run drake-cert synthesize --out)")
-    if raw["schema_version"] != DESIGN_SCHEMA_VERSION:
+            f"grip rule and the gradient law's conditions; this version reads {readable} "
+            "(re-run drake-cert synthesize --out)")
+    if raw["schema_version"] not in (DESIGN_SCHEMA_VERSION, *RENAMED_MARGINS):
         raise DesignFormatError(f"{where}: schema_version = {raw['schema_version']!r}; this "
-                                f"version reads {DESIGN_SCHEMA_VERSION}")
+                                f"version reads {readable}")
     if not isinstance(raw["provenance"], dict):
         raise DesignFormatError(f"{where}: provenance must be a mapping")
     if ("designs" in raw) == ("design" in raw):
@@ -176,7 +186,9 @@ def parse_design_table(raw, where: str) -> DesignTable:
         entries, key = raw["designs"], "designs"
         if not isinstance(entries, list) or not entries:
             raise DesignFormatError(f"{where}: designs must be a non-empty list")
-    designs = [design_from_dict(e, f"{where}: {key}" + ("" if key == "design" else f"[{i}]"))
+    renamed = RENAMED_MARGINS.get(raw["schema_version"], {})
+    designs = [design_from_dict(_with_margins_renamed(e, renamed),
+                                f"{where}: {key}" + ("" if key == "design" else f"[{i}]"))
                for i, e in enumerate(entries)]
     switching = None
     if "switching" in raw:
@@ -191,6 +203,15 @@ def parse_design_table(raw, where: str) -> DesignTable:
             raise DesignFormatError(str(e)) from None
     return DesignTable(designs, vehicle, settings, dict(raw["provenance"]), conditions,
                        switching)
+
+
+def _with_margins_renamed(entry, renamed: dict):
+    """A design mapping of an older schema with its margin keys renamed (``renamed``: old ->
+    new); anything that is not a design mapping with a margins mapping is left as it is."""
+    if not renamed or not isinstance(entry, dict) or not isinstance(entry.get("margins"), dict):
+        return entry
+    margins = {renamed.get(k, k): v for k, v in entry["margins"].items()}
+    return {**entry, "margins": margins}
 
 
 _FLOAT_FIELDS = ("stiffness_lo_n_per_rad", "stiffness_hi_n_per_rad",
@@ -226,6 +247,12 @@ def design_from_dict(data, where: str) -> ControllerDesign:
     if not isinstance(margins, dict):
         raise DesignFormatError(f"{where}.margins must be a mapping")
     for k, v in margins.items():
+        if k not in MARGIN_KEYS:
+            old = next((f" (schema {DESIGN_SCHEMA_VERSION} calls it {new!r})"
+                        for names in RENAMED_MARGINS.values() for o, new in names.items()
+                        if o == k), "")
+            raise DesignFormatError(f"{where}.margins: unknown key {k!r}{old}; known: "
+                                    f"{', '.join(MARGIN_KEYS)}")
         _require_number(v, f"{where}.margins.{k}", allow_inf=True)
     lo, hi = data["stiffness_lo_n_per_rad"], data["stiffness_hi_n_per_rad"]
     if not 0.0 < lo < hi:

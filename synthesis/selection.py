@@ -1,9 +1,10 @@
 """Which synthesized design a run-time stiffness interval gets (DESIGN 5.4 and 6).
 
 One code path for the Drake diagram's certified-interval block and for the experiments:
-a classification interval is a contiguous label range and gets that range's design; a
-regression interval gets the narrowest design of the preset whose stiffness interval contains
-it; the family envelope's design is the fallback, never a nominal one.
+a classification interval is a contiguous label range and gets that range's design; the
+family envelope's design is the fallback, never a nominal one. (A regression interval gets the
+narrowest design holding it whose friction bound is sound for it: the certified-interval
+block's ``_narrowest_holding`` in ``systems.certified_interval``.)
 """
 
 from collections.abc import Sequence
@@ -84,17 +85,3 @@ def meet_design_indices(designs: Sequence[ControllerDesign], conditions: Conditi
                             else envelope)
     return meet
 
-
-def narrowest_containing_design_index(designs: Sequence[ControllerDesign],
-                                      interval: tuple[float, float]) -> int | None:
-    """Index of the narrowest design whose stiffness interval contains ``interval`` (N/rad);
-    ties go to the slower design (the conservative side). None when no design contains it."""
-    lo, hi = interval
-    best, best_key = None, None
-    for i, d in enumerate(designs):
-        d_lo, d_hi = d.interval
-        if d_lo <= lo and hi <= d_hi:
-            key = (d_hi - d_lo, d.speed_mps)
-            if best_key is None or key < best_key:
-                best, best_key = i, key
-    return best

@@ -149,7 +149,7 @@ def failed_conditions(margins: dict) -> list[str]:
         failed.append(cond.L1_CONDITION)
     if margins["reference_stability_per_s"] < EIG_MARGIN_MIN_PER_S:
         failed.append(cond.REFERENCE_STABILITY)
-    if margins["steady_state_offset_m"] < OFFSET_MARGIN_MIN_M:
+    if margins["steady_state_lane_margin_m"] < OFFSET_MARGIN_MIN_M:
         failed.append(cond.STEADY_STATE_OFFSET)
     if min(margins["grip_normalised_slip"], margins["grip_lateral_accel_mps2"]) < 0.0:
         failed.append(cond.GRIP)
@@ -180,7 +180,7 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
             "gain_decay_per_s": decay_margin,
             "l1_condition": evaluator.l1_margin(speed, k),
             "reference_stability_per_s": min(ref_floor, evaluator.reference_margin_at(speed, k)),
-            "steady_state_offset_m": evaluator.offset_margin(speed),
+            "steady_state_lane_margin_m": evaluator.offset_margin(speed),
             "grip_normalised_slip": slip,
             "grip_lateral_accel_mps2": accel,
         }

@@ -21,7 +21,13 @@ GAIN_LMI = "gain_lmi"  # failed_condition when no k_m exists for the interval
 
 
 def design_label_ranges(conditions: ConditionsTable) -> list[tuple[str, ...]]:
-    """Every contiguous label range of every preset, first occurrence order, no duplicates."""
+    """Every contiguous label range of every preset, first occurrence order, no duplicates.
+
+    A range is a run of consecutive labels in the preset's friction order, grippiest first,
+    singles and the whole family included. These are the label ranges "the conditions define":
+    the run time selects among their designs, and ``synthesis.verify.completeness_check``
+    requires a design for each one.
+    """
     seen: dict[tuple[str, ...], None] = {}
     for preset in conditions.presets:
         for labels in conditions.contiguous_ranges(preset.name):
@@ -33,9 +39,9 @@ def friction_lower_bound(conditions: ConditionsTable, preset: str,
                          interval: tuple[float, float]) -> float:
     """Least friction a stiffness interval (N/rad) can mean in a preset (regression designs).
 
-    DESIGN 5.3d maps C_lo through the condition table; soundly: every label whose stiffness
-    interval meets ``[C_lo, C_hi]`` could be the true condition, so take the least friction
-    among them; if none meets it, the least friction of the whole preset.
+    DESIGN 5.3d: every label whose stiffness interval meets ``[C_lo, C_hi]`` could be the true
+    condition, so take the least friction among them (mapping C_lo alone through the table
+    could pick a grippier label); if none meets it, the least friction of the whole preset.
     """
     lo, hi = interval
     conds = conditions.preset_conditions(preset)

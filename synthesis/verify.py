@@ -25,20 +25,39 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
 * consistency: ``speed <= gain_speed_max``, ``0 < k <= k_bar``, ``C_hat`` the midpoint, and
   (when the file holds the conditions) interval = hull and mu_lo = least friction of the labels;
   stored margins may not overstate the recomputed ones.
+* ``completeness`` (table level, :func:`completeness_check`): the table holds exactly one
+  design for every label range the conditions define. A label range is a run of consecutive
+  labels of one preset in its friction order (grippiest first), single labels and the whole
+  family included (``ConditionsTable.contiguous_ranges``), the same label tuple counted once
+  across presets: the set ``synthesis.table.design_label_ranges`` synthesizes and the run time
+  selects from (a certified range, the join and the meet of two ranges are such runs). A
+  design covers a range when its ``labels`` equal it in that order. Checked against the
+  reference conditions when given (by default then) or, on request, the embedded ones.
 
 A design claiming no safe speed holds when, with its filter gain, some condition fails at
 every speed of the synthesis speed grid. Failures are named by condition.
 """
 
 import dataclasses
+import math
+from pathlib import Path
 
 import numpy as np
 import scipy.linalg
 
-from drake_cert.config import GRAVITY_MPS2, ConditionsTable, Settings, VehicleParams
+from drake_cert.config import (
+    GRAVITY_MPS2,
+    ConditionsTable,
+    Settings,
+    VehicleParams,
+    load_conditions,
+    load_settings,
+    load_vehicle,
+)
 from drake_cert.dynamics import lateral_error_dynamics
+from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
-from synthesis.design_io import DesignTable
+from synthesis.design_io import DesignTable, load_design_file
 from synthesis.switching import check_table_switching
 
 CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
@@ -49,6 +68,7 @@ MARGIN_CLAIM = "margin_claim"
 INPUT_MISMATCH = "reference_inputs"  # embedded vehicle/settings/conditions differ from the given
 GAIN_LMI = "gain_lmi"
 SWITCHING = "switching"  # the table's switching certificates
+COMPLETENESS = "completeness"  # a label range of the conditions without (or with two) designs
 NO_SWITCHING_NOTE = ("the file holds no switching certificate (written before them, or "
                      "with switching=False): switching among its designs is not certified; "
                      "re-run drake-cert synthesize --out to add one")
@@ -64,17 +84,40 @@ MARGIN_CLAIM_SLACK = (1.0e-3, 1.0e-2)  # (absolute, relative) overstatement allo
 
 @dataclasses.dataclass
 class DesignVerification:
-    """Recomputed margins of one design and the conditions that failed (name, message)."""
+    """Recomputed margins of one design and the conditions that failed (name, message).
+
+    ``interval_n_per_rad``: the design's label (or regression) stiffness interval (N/rad);
+    ``speed_mps``: the speed it claims (0: no safe speed, the car stops).
+    """
 
     index: int
     labels: list[str]
     speed_mps: float
     margins: dict
     failures: list[tuple[str, str]]
+    interval_n_per_rad: tuple[float, float] = (math.nan, math.nan)
 
     @property
     def ok(self) -> bool:
         return not self.failures
+
+    @property
+    def label_range(self) -> str:
+        """The labels joined by ``+`` (``"rain+snow"``); ``""`` for a regression interval."""
+        return "+".join(self.labels)
+
+
+@dataclasses.dataclass
+class MissingDesign:
+    """A label range the conditions define that the table has no design for."""
+
+    labels: list[str]  # grippiest first, as the preset orders them
+    presets: list[str]  # the presets whose contiguous ranges include it
+
+    @property
+    def message(self) -> str:
+        return (f"no design for label range {'+'.join(self.labels)} "
+                f"(preset{'s' if len(self.presets) > 1 else ''} {', '.join(self.presets)})")
 
 
 @dataclasses.dataclass
@@ -92,27 +135,87 @@ class VerificationReport:
     switching_failures: list[tuple[str, str]] = dataclasses.field(default_factory=list)
     notes: list[str] = dataclasses.field(default_factory=list)  # not failures (e.g. no
     # switching certificate in an old file)
+    switching_present: bool = False  # the file holds a switching section
+    # completeness (module docstring): "" when not checked, else "reference conditions" or
+    # "embedded conditions"
+    completeness_against: str = ""
+    label_ranges: int = 0  # label ranges the conditions define (when checked)
+    missing: list[MissingDesign] = dataclasses.field(default_factory=list)
+    # (COMPLETENESS, message): one per missing range, one per range with several designs
+    completeness_failures: list[tuple[str, str]] = dataclasses.field(default_factory=list)
 
     @property
     def ok(self) -> bool:
         return (not self.input_failures and all(d.ok for d in self.designs)
-                and not self.switching_failures)
+                and not self.switching_failures and not self.completeness_failures)
+
+    @property
+    def verdict(self) -> str:
+        """``"pass"`` when every check holds, else ``"fail"``."""
+        return "pass" if self.ok else "fail"
+
+    @property
+    def completeness_checked(self) -> bool:
+        return bool(self.completeness_against)
 
     @property
     def first_failure(self):
         """``(design index, labels, condition, message)`` of the first failure, or None.
 
-        A mismatch of the embedded inputs comes first, with index ``None``; a failure of the
-        switching certificates (table level, index ``None``) comes after the designs'.
+        A mismatch of the embedded inputs comes first, with index ``None``; failures of the
+        switching certificates and then of completeness (table level, index ``None``) come
+        after the designs'.
         """
         if self.input_failures:
             return (None, [], *self.input_failures[0])
         for d in self.designs:
             if d.failures:
                 return (d.index, d.labels, *d.failures[0])
-        if self.switching_failures:
-            return (None, [], *self.switching_failures[0])
+        for failures in (self.switching_failures, self.completeness_failures):
+            if failures:
+                return (None, [], *failures[0])
         return None
+
+    def to_dict(self) -> dict:
+        """Plain JSON-able mapping (``drake-cert verify --json``): the overall verdict, one
+        entry per design (label range, interval, speed, holds, reasons, margins; a margin that
+        could not be computed is ``None``), the completeness and switching verdicts."""
+        first = self.first_failure
+
+        def named(failures):
+            return [{"condition": c, "message": m} for c, m in failures]
+
+        return {
+            "verdict": self.verdict,
+            "ok": self.ok,
+            "checked_against": self.checked_against,
+            "input_failures": named(self.input_failures),
+            "designs": [{
+                "index": d.index, "labels": list(d.labels), "label_range": d.label_range,
+                "interval_n_per_rad": [float(x) for x in d.interval_n_per_rad],
+                "speed_mps": float(d.speed_mps), "holds": d.ok, "reasons": named(d.failures),
+                "margins": {k: (float(v) if math.isfinite(v) else None)
+                            for k, v in d.margins.items()},
+            } for d in self.designs],
+            "completeness": {
+                "checked": self.completeness_checked,
+                "against": self.completeness_against or None,
+                "label_ranges": self.label_ranges,
+                "holds": (not self.completeness_failures) if self.completeness_checked else None,
+                "missing": [{"labels": list(m.labels), "presets": list(m.presets)}
+                            for m in self.missing],
+                "failures": named(self.completeness_failures),
+            },
+            "switching": {
+                "present": self.switching_present,
+                "holds": not self.switching_failures,
+                "failures": named(self.switching_failures),
+            },
+            "notes": list(self.notes),
+            "first_failure": None if first is None else {
+                "index": first[0], "labels": list(first[1]), "condition": first[2],
+                "message": first[3]},
+        }
 
 
 # ----------------------------------------------------------------- independent L1 norm
@@ -462,7 +565,7 @@ def _conditions_at(vehicle, design, settings, speed):
         "l1_condition": _guarded(lambda: 1.0 - l1_condition_value(vehicle, design, speed)),
         "reference_stability_per_s": _guarded(
             lambda: -reference_abscissas(vehicle, design, speeds).max()),
-        "steady_state_offset_m": _guarded(
+        "steady_state_lane_margin_m": _guarded(
             lambda: offset_margin_m(vehicle, design, settings, speed)),
         "grip_normalised_slip": slip,
         "grip_lateral_accel_mps2": accel,
@@ -477,9 +580,9 @@ def _condition_failures(margins, speed) -> list[tuple[str, str]]:
     if margins["reference_stability_per_s"] <= 0.0:
         out.append(("reference_stability", "reference system max Re eig = "
                     f"{-margins['reference_stability_per_s']:.6g}/s >= 0 on [V_min, {speed:.4g}]"))
-    if margins["steady_state_offset_m"] < 0.0:
+    if margins["steady_state_lane_margin_m"] < 0.0:
         out.append(("steady_state_offset", "steady-state offset exceeds the lane margin by "
-                    f"{-margins['steady_state_offset_m']:.4g} m at {speed:.4g} m/s"))
+                    f"{-margins['steady_state_lane_margin_m']:.4g} m at {speed:.4g} m/s"))
     if margins["grip_normalised_slip"] < -1e-12:
         out.append(("grip", "tire slip exceeds the bound by "
                             f"{-margins['grip_normalised_slip']:.4g} (normalised) at "
@@ -511,7 +614,8 @@ def verify_design(design: ControllerDesign, vehicle: VehicleParams, settings: Se
     margins: dict = {}
     if design.failed_condition == GAIN_LMI and design.speed_mps == 0.0:
         # no k_m was found: the car stops, which is always safe; nothing else is claimed
-        return DesignVerification(index, list(design.labels), 0.0, margins, failures)
+        return DesignVerification(index, list(design.labels), 0.0, margins, failures,
+                                  design.interval)
     margins["gain_decay_per_s"] = gain_decay_margin(vehicle, design, settings)
     if margins["gain_decay_per_s"] < -1e-6:
         failures.append(("gain_decay", "k_m does not give decay rate "
@@ -520,14 +624,15 @@ def verify_design(design: ControllerDesign, vehicle: VehicleParams, settings: Se
         if margins["gain_decay_per_s"] + syn.decay_rate <= 0.0:
             # A - b k_m not Hurwitz: A_m, P_ad and the equilibrium do not exist
             return DesignVerification(index, list(design.labels), design.speed_mps, margins,
-                                      failures)
+                                      failures, design.interval)
     if design.speed_mps > 0.0:
         margins.update(_conditions_at(vehicle, design, settings, design.speed_mps))
         failures += _condition_failures(margins, design.speed_mps)
         failures += _claim_failures(design.margins, margins)
     else:
         failures += _no_safe_speed_failures(vehicle, design, settings, margins)
-    return DesignVerification(index, list(design.labels), design.speed_mps, margins, failures)
+    return DesignVerification(index, list(design.labels), design.speed_mps, margins, failures,
+                              design.interval)
 
 
 def _no_safe_speed_failures(vehicle, design, settings, margins) -> list[tuple[str, str]]:
@@ -606,11 +711,75 @@ def reference_input_failures(table: DesignTable, vehicle: VehicleParams | None =
     return out
 
 
-def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehicleParams | None = None,
-                        settings: Settings | None = None,
-                        conditions: ConditionsTable | None = None,
-                        require_switching: bool = False) -> VerificationReport:
-    """Verify every design of a loaded file; ``progress(i, n)`` is called per design.
+def completeness_check(designs: list[ControllerDesign], conditions: ConditionsTable
+                       ) -> tuple[int, list[MissingDesign], list[tuple[str, str]], list[str]]:
+    """``(label ranges, missing, failures, notes)`` of a table against ``conditions``.
+
+    The label ranges are every run of consecutive labels of each preset in its friction order
+    (``ConditionsTable.contiguous_ranges``), one per label tuple across presets: what
+    ``synthesis.table.design_label_ranges`` synthesizes. A range without a design with exactly
+    those labels is missing (a :data:`COMPLETENESS` failure naming it and its presets); a range
+    with several designs is a failure too (which one the run time would use is not defined).
+    A design whose labels are no such range (unused at run time) is a note; a regression
+    design (no labels) is not counted.
+    """
+    presets_of: dict[tuple[str, ...], list[str]] = {}
+    for preset in conditions.presets:
+        for labels in conditions.contiguous_ranges(preset.name):
+            presets_of.setdefault(tuple(labels), []).append(preset.name)
+    indices_of: dict[tuple[str, ...], list[int]] = {}
+    for i, d in enumerate(designs):
+        if d.labels:
+            indices_of.setdefault(tuple(d.labels), []).append(i)
+    missing = [MissingDesign(list(r), p) for r, p in presets_of.items() if r not in indices_of]
+    failures = [(COMPLETENESS, m.message) for m in missing]
+    failures += [(COMPLETENESS, f"{len(idx)} designs for label range {'+'.join(r)} (designs "
+                                f"{', '.join(map(str, idx))}): the run time would use one of them")
+                 for r, idx in indices_of.items() if r in presets_of and len(idx) > 1]
+    notes = [f"design {idx[0]} ({'+'.join(r)}) is for no label range of the conditions' "
+             "presets (never selected at run time)"
+             for r, idx in indices_of.items() if r not in presets_of]
+    return len(presets_of), missing, failures, notes
+
+
+def completeness_reference(table: DesignTable, conditions: ConditionsTable | None,
+                           complete: bool | None) -> str:
+    """Which conditions completeness is checked against: ``"reference conditions"``,
+    ``"embedded conditions"`` or ``""`` (not checked). ``complete=None`` checks it when
+    reference ``conditions`` are given; :class:`ConfigError` when it is asked for and the
+    file embeds no conditions and none are given."""
+    if complete is None:
+        complete = conditions is not None
+    if not complete:
+        return ""
+    if conditions is not None:
+        return "reference conditions"
+    if table.conditions is None:
+        raise ConfigError("cannot check that the design table is complete: the design file "
+                          "embeds no conditions and no reference conditions were given")
+    return "embedded conditions"
+
+
+def _loaded(value, loader):
+    """``value`` as it is, or loaded from a path with ``loader`` (which raises the typed error
+    naming the file when it cannot be read)."""
+    if value is None or not isinstance(value, (str, Path)):
+        return value
+    return loader(value)
+
+
+def verify_design_table(table: DesignTable | str | Path, progress=None, *,
+                        vehicle: VehicleParams | str | Path | None = None,
+                        settings: Settings | str | Path | None = None,
+                        conditions: ConditionsTable | str | Path | None = None,
+                        require_switching: bool = False,
+                        complete: bool | None = None) -> VerificationReport:
+    """Verify every design of a design table; ``progress(i, n)`` is called per design.
+
+    ``table``: a loaded :class:`DesignTable` or the path of a design file (table or single
+    design); ``vehicle``, ``settings``, ``conditions``: loaded objects or paths of YAML files.
+    An unreadable or invalid file raises :class:`drake_cert.errors.DesignFormatError` (the
+    design file) or :class:`drake_cert.errors.ConfigError` (a reference file), naming it.
 
     The table's switching certificates, when present, are rechecked
     (:func:`synthesis.switching.check_table_switching`, failures named ``switching``). A table
@@ -621,7 +790,17 @@ def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehiclePa
     copies the file embeds (else :data:`INPUT_MISMATCH` failures naming the field), and every
     condition is recomputed with them; without them the file's own copies are used, which
     only shows the file is self-consistent (``report.checked_against == "embedded"``).
+
+    ``complete``: whether the table must hold a design for every label range the conditions
+    define (:func:`completeness_check`; failures named ``completeness``). ``None`` (default):
+    when reference ``conditions`` are given. Checked against the reference conditions, else
+    the embedded ones; :class:`ConfigError` when there are none to check against.
     """
+    table = _loaded(table, load_design_file)
+    vehicle = _loaded(vehicle, load_vehicle)
+    settings = _loaded(settings, load_settings)
+    conditions = _loaded(conditions, load_conditions)
+    completeness_against = completeness_reference(table, conditions, complete)
     given = [n for n, x in (("vehicle", vehicle), ("settings", settings),
                             ("conditions", conditions)) if x is not None]
     input_failures = reference_input_failures(table, vehicle, settings, conditions)
@@ -642,5 +821,11 @@ def verify_design_table(table: DesignTable, progress=None, *, vehicle: VehiclePa
             switching_failures.append((SWITCHING, NO_SWITCHING_NOTE))
         else:
             notes.append(NO_SWITCHING_NOTE)
+    ranges, missing, completeness_failures = 0, [], []
+    if completeness_against:
+        ranges, missing, completeness_failures, extra = completeness_check(table.designs,
+                                                                           conditions)
+        notes += extra
     return VerificationReport(out, input_failures, ", ".join(given) or "embedded",
-                              switching_failures, notes)
+                              switching_failures, notes, table.switching is not None,
+                              completeness_against, ranges, missing, completeness_failures)

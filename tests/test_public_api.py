@@ -35,3 +35,37 @@ def test_every_public_name_resolves():
 
     for name in drake_cert.__all__:
         assert getattr(drake_cert, name) is not None, name
+
+
+def test_verify_design_table_in_the_facade_reads_files_and_returns_a_typed_report(
+        default_design_table, tmp_path):
+    import dataclasses
+
+    import drake_cert as dc
+    from drake_cert.config import default_path
+
+    snow = [d for d in default_design_table.designs if d.labels == ["snow"]]
+    path = tmp_path / "snow.yaml"
+    dc.save_design_table(path, dataclasses.replace(default_design_table, designs=snow),
+                         switching=False)
+    report = dc.verify_design_table(path)
+    assert isinstance(report, dc.VerificationReport) and dataclasses.is_dataclass(report)
+    assert report.ok and report.verdict == "pass" and not report.completeness_checked
+    (design,) = report.designs
+    assert design.label_range == "snow" and design.interval_n_per_rad == snow[0].interval
+    # against the shipped conditions (a path) the one-design table is incomplete
+    report = dc.verify_design_table(path, conditions=default_path("conditions.yaml"))
+    assert not report.ok and report.designs[0].ok and len(report.missing) == 19
+    assert report.to_dict()["completeness"]["holds"] is False
+
+
+def test_verify_design_table_raises_the_typed_error_for_an_unreadable_file(tmp_path):
+    import pytest
+
+    import drake_cert as dc
+
+    with pytest.raises(dc.DesignFormatError, match="cannot read file"):
+        dc.verify_design_table(tmp_path / "missing.yaml")
+    (tmp_path / "bad.yaml").write_text("designs: [unclosed\n")
+    with pytest.raises(dc.DesignFormatError, match="not valid YAML"):
+        dc.verify_design_table(tmp_path / "bad.yaml")

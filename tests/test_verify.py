@@ -1,4 +1,5 @@
-"""``drake-cert synthesize`` / ``verify`` (DESIGN 5.5): designs pass, tampered ones fail."""
+"""``drake-cert synthesize`` / ``verify`` (DESIGN 5.5): designs pass, tampered ones fail, and a
+table that lacks a label range's design fails."""
 
 import dataclasses
 import json
@@ -10,10 +11,12 @@ import yaml
 
 from drake_cert import cli
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
 from drake_cert.io import provenance
+from synthesis.design import ControllerDesign
 from synthesis.design_io import DesignTable, load_design_file, save_design_table
-from synthesis.table import synthesize_design
-from synthesis.verify import verify_design
+from synthesis.table import design_label_ranges, synthesize_design
+from synthesis.verify import completeness_check, verify_design, verify_design_table
 
 
 @pytest.fixture(scope="module")
@@ -39,10 +42,14 @@ def test_synthesized_table_round_trips_and_passes_verify(default_design_table, t
     loaded = load_design_file(table_file)
     assert loaded.designs == default_design_table.designs
     assert loaded.provenance["schema_version"] == 1 and "git_revision" in loaded.provenance
+    assert yaml.safe_load(table_file.read_text())["schema_version"] == 3
     assert cli.main(["verify", str(table_file)]) == 0
     out = capsys.readouterr()
     assert "all 20 designs hold" in out.err
-    assert "l1_condition=" in out.out and "steady_state_offset_m=" in out.out
+    assert "l1_condition=" in out.out and "steady_state_lane_margin_m=" in out.out
+    # no reference files: checked against the file's own inputs, completeness not checked
+    assert "own embedded vehicle, settings and conditions" in out.err
+    assert "complete" not in out.err
 
 
 def test_unstabilising_gain_fails_naming_gain_decay(table_file, tmp_path, capsys):
@@ -62,8 +69,9 @@ def test_speed_raised_above_what_the_conditions_allow_fails_naming_the_condition
     assert cli.main(["verify", "--json", str(path)]) == 1
     out = capsys.readouterr()
     report = json.loads(out.out)
-    failed = {f["condition"] for d in report["designs"] for f in d["failures"]}
-    assert report["ok"] is False and "grip" in failed
+    failed = {f["condition"] for d in report["designs"] for f in d["reasons"]}
+    assert report["ok"] is False and report["verdict"] == "fail" and "grip" in failed
+    assert report["designs"][0]["holds"] is False and report["designs"][0]["speed_mps"] == 22.0
     first = report["first_failure"]
     assert first["labels"] == ["sunny"]
     assert f"fails {first['condition']}" in out.err
@@ -205,17 +213,94 @@ def test_self_consistently_raised_speed_is_rejected_against_the_shipped_settings
     assert "settings.synthesis.lateral_accel_fraction = 0.99" in err
 
 
-def test_verify_against_reference_files_passes_an_untouched_table(table_file, capsys):
-    assert cli.main(["verify", str(table_file), "--settings", _shipped("settings.yaml"),
-                     "--vehicle", _shipped("vehicle.yaml"),
-                     "--conditions", _shipped("conditions.yaml")]) == 0
+def _references():
+    return ["--settings", _shipped("settings.yaml"), "--vehicle", _shipped("vehicle.yaml"),
+            "--conditions", _shipped("conditions.yaml")]
+
+
+def test_verify_against_reference_files_passes_an_untouched_table_and_reports_json(
+        default_design_table, table_file, capsys):
+    assert cli.main(["verify", str(table_file), "--json", *_references()]) == 0
+    out = capsys.readouterr()
+    assert "checked against the reference vehicle, settings, conditions" in out.err
+    assert ("all 20 designs hold; complete: a design for each of the 20 label ranges of the "
+            "reference conditions") in out.err
+    report = json.loads(out.out)
+    assert report["verdict"] == "pass" and report["ok"] is True
+    assert report["completeness"] == {"checked": True, "against": "reference conditions",
+                                      "label_ranges": 20, "holds": True, "missing": [],
+                                      "failures": []}
+    assert report["switching"] == {"present": True, "holds": True, "failures": []}
+    for entry, design in zip(report["designs"], default_design_table.designs, strict=True):
+        assert entry["holds"] is True and entry["reasons"] == []
+        assert entry["label_range"] == "+".join(design.labels)
+        assert entry["interval_n_per_rad"] == list(design.interval)
+        assert entry["speed_mps"] == design.speed_mps
+
+
+def test_the_synthesized_table_without_the_snow_design_lacks_the_ranges_that_hold_snow(
+        default_design_table):
+    designs = [d for d in default_design_table.designs
+               if d.labels not in (["snow"], ["heavy_rain", "snow"])]
+    ranges, missing, failures, notes = completeness_check(designs, load_conditions())
+    assert ranges == 20 and notes == []
+    assert [(m.labels, m.presets) for m in missing] == [(["snow"], ["robotcar-like", "weather"]),
+                                                        (["heavy_rain", "snow"], ["weather"])]
+    assert [m for _, m in failures] == [
+        "no design for label range snow (presets robotcar-like, weather)",
+        "no design for label range heavy_rain+snow (preset weather)"]
+
+
+def test_a_cut_table_fails_completeness_unless_told_not_to_check_it(table_file, tmp_path,
+                                                                     capsys):
+    path = str(_tampered(table_file, tmp_path, lambda raw: None, ("snow",)))
+    assert cli.main(["verify", path, "--conditions", _shipped("conditions.yaml")]) == 1
     err = capsys.readouterr().err
-    assert "checked against the reference vehicle, settings, conditions" in err
+    assert err.count("incomplete table: no design for label range") == 19
+    assert ("drake-cert verify: incomplete table: no design for label range heavy_rain+snow "
+            "(preset weather)\n") in err
+    assert ("drake-cert verify: incomplete table: no design for label range sunny "
+            "(presets carla-like, robotcar-like, weather)\n") in err
+    assert "designs hold" not in err
+    assert cli.main(["verify", path, "--conditions", _shipped("conditions.yaml"),
+                     "--no-complete"]) == 0
+    assert "all 1 designs hold\n" in capsys.readouterr().err
+    assert cli.main(["verify", path, "--complete"]) == 1  # against the embedded conditions
+    assert capsys.readouterr().err.count("incomplete table: no design for label range") == 19
 
 
-def test_verify_without_reference_files_says_it_used_the_embedded_inputs(table_file, capsys):
-    assert cli.main(["verify", str(table_file)]) == 0
-    assert "own embedded vehicle, settings and conditions" in capsys.readouterr().err
+def test_complete_without_any_conditions_is_one_line_exit_2(default_design_table, tmp_path,
+                                                            capsys):
+    single = DesignTable(default_design_table.designs[:1], load_vehicle(), load_settings(),
+                         provenance(command=["test"]))
+    path = tmp_path / "one.yaml"
+    save_design_table(path, single, single=True)
+    assert cli.main(["verify", str(path), "--complete"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "embeds no conditions" in err
+    with pytest.raises(ConfigError, match="embeds no conditions"):
+        verify_design_table(path, complete=True)
+
+
+def _labelled(*labels) -> ControllerDesign:
+    return ControllerDesign(list(labels), 1.0, 2.0, 1.5, 0.5, [0.0] * 4, 0.0, 1.0, 0.0, "grip")
+
+
+def test_completeness_counts_every_contiguous_label_range_of_every_preset_once():
+    conditions = load_conditions()
+    full = [_labelled(*r) for r in design_label_ranges(conditions)]
+    assert completeness_check(full, conditions) == (20, [], [], [])
+    # what is missing is named with the presets that define it; a range's second design and
+    # a design for no range (sunny+snow skips rain) are found; a regression design is ignored
+    designs = [d for d in full if d.labels != ["sunny", "rain"]]
+    designs += [_labelled("snow"), _labelled("sunny", "snow"), _labelled()]
+    ranges, missing, failures, notes = completeness_check(designs, conditions)
+    assert ranges == 20
+    assert [(m.labels, m.presets) for m in missing] == [(["sunny", "rain"], ["robotcar-like"])]
+    assert [c for c, _ in failures] == ["completeness", "completeness"]
+    assert "no design for label range sunny+rain (preset robotcar-like)" in failures[0][1]
+    assert failures[1][1].startswith("2 designs for label range snow (designs ")
+    assert len(notes) == 1 and "sunny+snow" in notes[0]
 
 
 def test_changed_vehicle_is_named_when_verified_against_the_shipped_vehicle(
@@ -230,13 +315,12 @@ def test_changed_vehicle_is_named_when_verified_against_the_shipped_vehicle(
 
 def test_synthesize_exits_1_naming_the_binding_condition_when_no_design_is_safe(
         tmp_path, capsys):
-    vehicle = dataclasses.asdict(load_vehicle())
-    vehicle["lf_m"] *= 1000.0  # millimetres typed as metres
-    vehicle["lr_m"] *= 1000.0
-    path = tmp_path / "vehicle_mm.yaml"
-    path.write_text(yaml.safe_dump(vehicle))
+    settings = dataclasses.asdict(load_settings())
+    settings["synthesis"]["decay_rate"] = 50.0  # 1/s: no gain of the steering reaches it
+    path = tmp_path / "settings_fast_decay.yaml"
+    path.write_text(yaml.safe_dump(settings))
     out_file = tmp_path / "designs.yaml"
-    code = cli.main(["synthesize", "--vehicle", str(path), "--conditions",
+    code = cli.main(["synthesize", "--settings", str(path), "--conditions",
                      str(_small_conditions(tmp_path)), "--out", str(out_file)])
     err = capsys.readouterr().err
     assert code == 1 and "no design has a safe speed; binding condition: gain_lmi" in err
@@ -261,3 +345,31 @@ def test_a_schema_1_design_file_is_refused_with_a_clear_message(table_file, tmp_
 
     assert cli.main(["verify", str(_tampered(table_file, tmp_path, edit))]) == 2
     assert "old slip-angle grip rule" in capsys.readouterr().err
+
+
+def test_a_schema_2_file_reads_its_offset_margin_as_the_lane_margin_left(table_file, tmp_path):
+    def edit(raw):  # as the previous version wrote it
+        raw["schema_version"] = 2
+        for d in raw["designs"]:
+            margins = d["margins"]
+            if "steady_state_lane_margin_m" in margins:
+                margins["steady_state_offset_m"] = margins.pop("steady_state_lane_margin_m")
+
+    old = load_design_file(_tampered(table_file, tmp_path, edit))
+    assert old.designs == load_design_file(table_file).designs
+    lane_margin = load_vehicle().lane_margin_m
+    kept = [d.margins["steady_state_lane_margin_m"] for d in old.designs if d.margins]
+    assert kept and all(0.0 < m <= lane_margin for m in kept)
+
+
+def test_the_old_margin_name_in_a_schema_3_file_is_one_line_exit_2(table_file, tmp_path,
+                                                                  capsys):
+    def edit(raw):
+        margins = raw["designs"][0]["margins"]
+        margins["steady_state_offset_m"] = margins.pop("steady_state_lane_margin_m")
+
+    assert cli.main(["verify", str(_tampered(table_file, tmp_path, edit, ("snow",)))]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1
+    assert ("margins: unknown key 'steady_state_offset_m' (schema 3 calls it "
+            "'steady_state_lane_margin_m')") in err

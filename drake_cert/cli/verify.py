@@ -5,15 +5,22 @@ every condition by the separate code path of ``synthesis.verify`` and prints the
 With ``--vehicle``, ``--settings``, ``--conditions`` (reference files) the file's embedded
 copies must equal them (else exit 1 naming the field) and every condition is recomputed with
 them; without them verify checks the file against its own embedded inputs and says so on
-stderr (a self-consistent edit of the file would pass). Exit 0 when every design's claims
-hold, 1 naming the first failed condition, 2 when a file cannot be read.
+stderr (a self-consistent edit of the file would pass).
+
+Completeness (``--complete``, on by default when ``--conditions`` is given): the table must
+hold a design for every label range the conditions define, i.e. every run of consecutive
+labels of a preset in its friction order, singles and the whole family included (what
+``drake-cert synthesize`` writes and the run time selects from); each missing range is named
+on its own line. ``--json`` prints the report on stdout: the verdict, per design its label
+range, interval, speed, whether it holds and why not, and the completeness and switching
+verdicts. Exit 0 when everything holds, 1 naming the first failed condition (and every
+missing label range), 2 when a file cannot be read or completeness cannot be checked.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import math
 import sys
 
 
@@ -27,31 +34,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--conditions", metavar="FILE", default=None,
                         help="reference conditions YAML: the file's embedded conditions must "
                              "equal it")
+    parser.add_argument("--complete", action=argparse.BooleanOptionalAction, default=None,
+                        help="fail (exit 1) when the table lacks a design for a label range of "
+                             "the conditions (the reference --conditions, else the embedded "
+                             "ones); default: on when --conditions is given, else off")
     parser.add_argument("--json", action="store_true",
-                        help="print the verification report as JSON on stdout")
-
-
-def _finite_or_none(margins: dict) -> dict:
-    """JSON has no infinities: a margin that could not be computed (-inf) becomes null."""
-    return {k: (float(v) if math.isfinite(v) else None) for k, v in margins.items()}
-
-
-def _report_dict(report) -> dict:
-    first = report.first_failure
-    return {
-        "ok": report.ok,
-        "checked_against": report.checked_against,
-        "input_failures": [{"condition": c, "message": m} for c, m in report.input_failures],
-        "first_failure": None if first is None else {
-            "index": first[0], "labels": first[1], "condition": first[2], "message": first[3]},
-        "switching_failures": [{"condition": c, "message": m}
-                               for c, m in report.switching_failures],
-        "notes": list(report.notes),
-        "designs": [{"index": d.index, "labels": d.labels, "speed_mps": d.speed_mps,
-                     "margins": _finite_or_none(d.margins),
-                     "failures": [{"condition": c, "message": m} for c, m in d.failures]}
-                    for d in report.designs],
-    }
+                        help="print the verification report as JSON on stdout (verdict, "
+                             "per-design verdicts, completeness, switching)")
 
 
 def _format_line(d) -> str:
@@ -65,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from synthesis.design_io import load_design_file
-    from synthesis.verify import verify_design_table
+    from synthesis.verify import COMPLETENESS, completeness_reference, verify_design_table
 
     table = load_design_file(args.design)
     references = {
@@ -73,10 +62,11 @@ def run(args: argparse.Namespace) -> int:
         "settings": load_settings(args.settings) if args.settings else None,
         "conditions": load_conditions(args.conditions) if args.conditions else None,
     }
+    completeness_reference(table, references["conditions"], args.complete)  # exit 2 early
     with progress_bar(total=len(table.designs), desc="verify", unit="design",
                       leave=False) as bar:
         report = verify_design_table(table, lambda i, n: bar.update(1),
-                                     **references)
+                                     complete=args.complete, **references)
     if report.checked_against == "embedded":
         print("drake-cert verify: checked against the design file's own embedded vehicle, "
               "settings and conditions (give --vehicle/--settings/--conditions to check "
@@ -87,17 +77,23 @@ def run(args: argparse.Namespace) -> int:
     for note in report.notes:
         print(f"drake-cert verify: note: {note}", file=sys.stderr)
     if args.json:
-        json.dump(_report_dict(report), sys.stdout, indent=1)
+        json.dump(report.to_dict(), sys.stdout, indent=1)
         print()
     else:
         for d in report.designs:
             print(_format_line(d))
     first = report.first_failure
-    if first is not None:
+    if first is not None and first[2] != COMPLETENESS:
         index, labels, condition, message = first
         where = ("the design file" if index is None
                  else f"design {index} ({'+'.join(labels) or 'interval'})")
         print(f"drake-cert verify: {where} fails {condition}: {message}", file=sys.stderr)
+    for _, message in report.completeness_failures:
+        print(f"drake-cert verify: incomplete table: {message}", file=sys.stderr)
+    if not report.ok:
         return 1
-    print(f"drake-cert verify: all {len(report.designs)} designs hold", file=sys.stderr)
+    complete = (f"; complete: a design for each of the {report.label_ranges} label ranges of "
+                f"the {report.completeness_against}" if report.completeness_checked else "")
+    print(f"drake-cert verify: all {len(report.designs)} designs hold{complete}",
+          file=sys.stderr)
     return 0
