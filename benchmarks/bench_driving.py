@@ -53,6 +53,9 @@ def timed_drive(scenario, setup, seconds):
 
 
 def main() -> None:
+    from drake_cert.certification.sampler import retain_freed_memory
+
+    retain_freed_memory()  # as the long-running commands run (README figures)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--n", type=int, default=1000)

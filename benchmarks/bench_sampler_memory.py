@@ -19,8 +19,9 @@ import sys
 WORKER = """
 import hashlib, json, resource, statistics, sys, time, torch
 import drake_cert.certification.sampler as sampler
-if sys.argv[1] == "defaults":
-    sampler.retain_freed_memory = lambda: False  # the sampler then leaves glibc as it is
+if sys.argv[1] == "retain":  # as the long-running commands do; "defaults" leaves glibc as it is
+    if not sampler.retain_freed_memory():
+        sys.exit("glibc refused the settings (or this is not glibc): nothing to compare")
 torch.set_num_threads(1)
 from drake_cert.perception.models import load_model
 n, reps, batch, precision = int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4]), sys.argv[5]

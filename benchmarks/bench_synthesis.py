@@ -1,4 +1,5 @@
-"""Synthesis benchmarks (issue item 7): prints measured figures, with baselines from the same run.
+"""Synthesis benchmarks ((ii) and (iii) of the README's table): prints measured figures, with
+baselines from the same run.
 
 (ii)  wall time to synthesize the default design table (target < 30 s on 2 cores);
 (iii) ``l1_norm`` evaluations per second on the 5-state system G = H (1 - C_w) of the L1

@@ -1,4 +1,4 @@
-"""Certified speed against the measured in-lane limit on the Fiala plant (issue 9, item 1).
+"""Certified speed against the measured in-lane limit on the Fiala plant (DESIGN 5.3d).
 
 For every single-label design of the shipped table: the highest speed at which the car stays
 in its lane on the default curve (radius ``design_radius_m``, clothoid entry) with the true

@@ -1,4 +1,4 @@
-"""Perception results table (issue 10): run-time stiffness intervals of f, g and h, clean and
+"""Perception results table: run-time stiffness intervals of f, g and h, clean and
 attacked, on the same frames at the same budgets (drake_cert.experiments.perception_table).
 
 Cells are stored as JSON under --store as soon as each is done (an interrupted run resumes);
@@ -32,6 +32,9 @@ from drake_cert.io import atomic_write_text, provenance
 
 
 def main() -> None:
+    from drake_cert.certification.sampler import retain_freed_memory
+
+    retain_freed_memory()  # as the long-running commands run (README figures)
     d = TableSettings()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=list(PRESETS))

@@ -3,6 +3,10 @@
 Files are read with Drake's ``yaml_load_typed`` into the dataclasses below. Every field
 must be given (no silent defaults), unknown keys are errors, and non-physical values are
 rejected; each problem raises one :class:`ConfigError` naming the key and the file.
+Physical fields carry a plausible range (:class:`Plausible`, in the field's metadata): a
+value outside it is refused with the unit mistake that would explain it ("kN/rad? write
+100000"). Keys, types and plausible ranges are checked on the parsed YAML before pydrake is
+imported, so a mistake in a file costs no heavy import.
 Units are SI; conventions (README): e1 > 0 left of the lane centre, curvature > 0 left
 turn, steering > 0 left, ``psidot_des = V * kappa``.
 """
@@ -15,29 +19,134 @@ from importlib import resources
 from pathlib import Path
 
 import yaml
-from pydrake.common.yaml import yaml_load_typed
 
 from drake_cert.errors import ConfigError
 
 GRAVITY_MPS2 = 9.81
 
 
+@dataclasses.dataclass(frozen=True)
+class Plausible:
+    """The range a physical quantity plausibly takes, and the unit mistakes that explain a
+    value outside it.
+
+    ``small`` and ``large`` list ``(factor, unit)`` pairs: a value below ``lo`` (above ``hi``)
+    that lands in ``[lo, hi]`` once multiplied by ``factor`` was probably written in ``unit``,
+    and the message suggests the product (a stiffness of 100 below 1000 N/rad: "kN/rad? write
+    100000"). Only positive finite values are judged; the sign is each field's own check.
+    """
+
+    lo: float  # smallest plausible value, in the field's unit
+    hi: float  # largest plausible value, in the field's unit
+    unit: str  # the field's unit as printed ("N/rad", "kg", "m"); "" for a pure number
+    what: str  # what the field is, after "for" ("a vehicle mass")
+    small: tuple[tuple[float, str], ...] = ()
+    large: tuple[tuple[float, str], ...] = ()
+
+    def problem(self, value: float) -> str | None:
+        """None if ``value`` is plausible (or not a positive finite number), else the reason:
+        "100 N/rad is implausibly small for ... (kN/rad? write 100000)"."""
+        if isinstance(value, bool) or not isinstance(value, (int, float)) \
+                or not (math.isfinite(value) and value > 0) or self.lo <= value <= self.hi:
+            return None
+        low = value < self.lo
+        unit = f" {self.unit}" if self.unit else ""
+        hints = [f"{name}? write {value * factor:.6g}"
+                 for factor, name in (self.small if low else self.large)
+                 if self.lo <= value * factor <= self.hi]
+        bound = f"{'below' if low else 'above'} {self.lo if low else self.hi:g}{unit}"
+        return (f"{value:g}{unit} is implausibly {'small' if low else 'large'} for "
+                f"{self.what}, {bound}" + (f" ({'; '.join(hints)})" if hints else ""))
+
+    def check(self, value: float, key: str, where: str | None = None) -> None:
+        """Raise :class:`ConfigError` "``where``: ``key`` = ... (hint)" for an implausible value
+        (a command-line option as ``key``: "--stiffness 100 N/rad is ...")."""
+        reason = self.problem(value)
+        if reason is not None:
+            raise ConfigError(f"{where + ': ' if where else ''}{_assign(key)}{reason}")
+
+
+def _assign(key: str) -> str:
+    """"key = " for a file's key, "--option " for a command-line option."""
+    return f"{key} " if key.startswith("--") else f"{key} = "
+
+
+MM_OR_CM = ((1e-3, "mm"), (1e-2, "cm"))
+# per-tire cornering stiffness: passenger-car tires are 20-150 kN/rad, truck tires up to ~400
+STIFFNESS_PLAUSIBLE = Plausible(1_000.0, 2_000_000.0, "N/rad",
+                                "a cornering stiffness per tire", small=((1e3, "kN/rad"),))
+SPEED_PLAUSIBLE = Plausible(0.0, 100.0, "m/s", "a road vehicle's speed",
+                            large=((1 / 3.6, "km/h"),))
+
+
+def _plausible(default: float, plausible: Plausible, **metadata) -> typing.Any:
+    """A dataclass field with a plausible range (checked by the loader and ``validate``)."""
+    return dataclasses.field(default=default, metadata={"plausible": plausible, **metadata})
+
+
+def check_plausible_fields(obj: typing.Any, prefix: str, where: str) -> None:
+    """:meth:`Plausible.check` on every field of the dataclass ``obj`` that declares a range."""
+    for f in dataclasses.fields(obj):
+        if "plausible" in f.metadata:
+            f.metadata["plausible"].check(getattr(obj, f.name), prefix + f.name, where)
+
+
+# frames are 3 x size x size float32 tensors, evaluated in batches of noisy copies
+FRAME_SIZE_MAX = 1024  # pixels: 12 MiB a frame; the shipped models take 64
+
+
+def check_frame_size(size: int, key: str, batch_size: int | None = None) -> None:
+    """Refuse a frame side (pixels) whose frames would not fit in memory, saying how much
+    they would take: ``ConfigError("<key> = 100000 px: one 100000x100000 RGB frame takes
+    112 GiB in float32 (...); the limit is 1024 px")``. ``key`` names the option ("--size")
+    or the field ("where: camera.frame_size")."""
+    if isinstance(size, bool) or not isinstance(size, int) or size <= FRAME_SIZE_MAX:
+        return
+    frame = 3 * 4 * size * size
+    batch = (f", a batch of {batch_size} noisy copies {_bytes(frame * batch_size)}"
+             if batch_size and batch_size > 1 else "")
+    raise ConfigError(f"{_assign(key)}{size} px: one {size}x{size} RGB frame takes {_bytes(frame)} "
+                      f"in float32{batch}; the limit is {FRAME_SIZE_MAX} px "
+                      f"({_bytes(3 * 4 * FRAME_SIZE_MAX**2)} a frame; the shipped models take "
+                      "64 px)")
+
+
+def _bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB"):
+        if n < 1024 or unit == "TiB":
+            return f"{n:.3g} {unit}"
+        n /= 1024
+    raise AssertionError("unreachable")
+
+
 @dataclasses.dataclass
 class VehicleParams:
-    """Single-track vehicle (Rajamani ch. 2-3). C_f = C_r = C per tire (2C per axle)."""
+    """Single-track vehicle (Rajamani ch. 2-3). C_f = C_r = C per tire (2C per axle).
 
-    mass_kg: float = 1573.0  # m
-    yaw_inertia_kg_m2: float = 2873.0  # I_z
-    lf_m: float = 1.1  # CG to front axle
-    lr_m: float = 1.58  # CG to rear axle
+    Plausible ranges (refused outside, with the likely unit mistake): mass 100-200,000 kg,
+    yaw inertia 50-5,000,000 kg m^2, CG-to-axle distances 0.3-10 m, lane width 1-20 m, car
+    width 0.5-5 m, tire stiffness scale 0.1-10."""
+
+    mass_kg: float = _plausible(1573.0, Plausible(  # m
+        100.0, 200_000.0, "kg", "a vehicle mass", small=((1e3, "tonnes"),),
+        large=((1e-3, "g"),)))
+    yaw_inertia_kg_m2: float = _plausible(2873.0, Plausible(  # I_z
+        50.0, 5_000_000.0, "kg m^2", "a yaw moment of inertia", small=((1e3, "t m^2"),)))
+    lf_m: float = _plausible(1.1, Plausible(  # CG to front axle
+        0.3, 10.0, "m", "a CG-to-axle distance", large=MM_OR_CM))
+    lr_m: float = _plausible(1.58, Plausible(  # CG to rear axle
+        0.3, 10.0, "m", "a CG-to-axle distance", large=MM_OR_CM))
     steering_limit_rad: float = 0.5  # |u| saturation
-    lane_width_m: float = 3.5
-    car_width_m: float = 1.8
+    lane_width_m: float = _plausible(3.5, Plausible(1.0, 20.0, "m", "a lane width",
+                                                    large=MM_OR_CM))
+    car_width_m: float = _plausible(1.8, Plausible(0.5, 5.0, "m", "a car width",
+                                                   large=MM_OR_CM))
     # factor on the conditions table's per-tire stiffness intervals for this vehicle's tires
     # (dimensionless; optional key, default 1): designs are synthesized and verified on
     # [scale C_lo, scale C_hi] of each label (ConditionsTable.with_stiffness_scale)
-    tire_stiffness_scale: float = dataclasses.field(default=1.0,
-                                                    metadata={"optional": True})
+    tire_stiffness_scale: float = _plausible(1.0, Plausible(
+        0.1, 10.0, "", "a factor on the conditions table's stiffness (not a stiffness)"),
+        optional=True)
 
     @property
     def lane_margin_m(self) -> float:
@@ -48,6 +157,7 @@ class VehicleParams:
         for key in ("mass_kg", "yaw_inertia_kg_m2", "lf_m", "lr_m", "steering_limit_rad",
                     "lane_width_m", "car_width_m", "tire_stiffness_scale"):
             _require_positive(getattr(self, key), key, where)
+        check_plausible_fields(self, "", where)
         if self.steering_limit_rad >= 0.5 * math.pi:
             raise ConfigError(f"{where}: steering_limit_rad = {self.steering_limit_rad} must be "
                               f"below pi/2 = {0.5 * math.pi:.6f} rad (the plant's tan(u) is "
@@ -62,9 +172,11 @@ class RoadCondition:
     """One road condition: cornering-stiffness interval per tire (N/rad) and friction mu."""
 
     name: str = ""
-    stiffness_lo_n_per_rad: float = 0.0
-    stiffness_hi_n_per_rad: float = 0.0
-    friction_mu: float = 0.0
+    stiffness_lo_n_per_rad: float = _plausible(0.0, STIFFNESS_PLAUSIBLE)
+    stiffness_hi_n_per_rad: float = _plausible(0.0, STIFFNESS_PLAUSIBLE)
+    # (0, 2] is checked by ConditionsTable.validate; the range here catches a percentage
+    friction_mu: float = _plausible(0.0, Plausible(0.0, 2.0, "", "a friction coefficient",
+                                                   large=((1e-2, "percent"),)))
 
     @property
     def interval(self) -> tuple[float, float]:
@@ -152,6 +264,7 @@ class ConditionsTable:
             if not c.name:
                 raise ConfigError(f"{where}: conditions[{i}].name must not be empty")
             _require_positive(c.stiffness_lo_n_per_rad, f"{key}.stiffness_lo_n_per_rad", where)
+            check_plausible_fields(c, f"{key}.", where)
             if c.stiffness_lo_n_per_rad >= c.stiffness_hi_n_per_rad:
                 raise ConfigError(
                     f"{where}: {key}: stiffness_lo_n_per_rad ({c.stiffness_lo_n_per_rad}) must be "
@@ -225,8 +338,8 @@ class SynthesisSettings:
 
     decay_rate: float = 0.2  # alpha (1/s): A_cl + alpha I Hurwitz at every corner
     lmi_margin: float = 1.0e-6  # eps of the strict LMI (normalised by X >= I)
-    speed_min_mps: float = 5.0
-    speed_max_mps: float = 30.0
+    speed_min_mps: float = _plausible(5.0, SPEED_PLAUSIBLE)
+    speed_max_mps: float = _plausible(30.0, SPEED_PLAUSIBLE)
     filter_gain_max: float = 500.0  # k_bar
     design_radius_m: float = 50.0  # road radius for the offset and grip conditions
     # grip (DESIGN 5.3d): admissible tire slip as a normalised slip z = C |tan a| / (3 mu F_z)
@@ -247,6 +360,7 @@ class SynthesisSettings:
                 raise ConfigError(f"{where}: synthesis.{key} = {getattr(self, key)} must be "
                                   "below 1 (1 is the friction limit)")
         _require_positive(self.speed_min_mps, "synthesis.speed_min_mps", where)
+        check_plausible_fields(self, "synthesis.", where)
         if self.speed_min_mps > self.speed_max_mps:
             raise ConfigError(f"{where}: synthesis.speed_min_mps ({self.speed_min_mps}) exceeds "
                               f"synthesis.speed_max_mps ({self.speed_max_mps})")
@@ -303,28 +417,35 @@ def _require_positive(value: float, key: str, where: str) -> None:
 
 
 def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
-    """Unknown and missing keys, recursively, against the dataclass schema."""
+    """Unknown and missing keys, types of numbers and strings, and plausible ranges
+    (:class:`Plausible`), recursively against the dataclass schema, on the parsed YAML.
+
+    pydrake's strict mode (``yaml_load_typed(..., allow_schema_with_no_yaml=False)``) is not
+    used instead: it cannot leave one key optional (``tire_stiffness_scale``), its messages
+    name neither the key's path ("The fields ['decay_rate'] were missing") nor, for a wrong
+    type, the key, and this runs before pydrake is imported."""
     if not dataclasses.is_dataclass(schema):
         return
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: {path or 'top level'} must be a mapping, got {data!r}")
     hints = typing.get_type_hints(schema)
-    fields = {f.name for f in dataclasses.fields(schema)}
-    unknown = sorted(set(data) - fields)
+    fields = dataclasses.fields(schema)
+    names = {f.name for f in fields}
+    unknown = sorted(set(data) - names, key=str)
     if unknown:
-        raise ConfigError(f"{where}: unknown key {_join(path, unknown[0])!r}; expected one of "
-                          f"{', '.join(sorted(fields))}")
-    optional = {f.name for f in dataclasses.fields(schema) if f.metadata.get("optional")}
-    missing = [f for f in sorted(fields) if f not in data and f not in optional]
+        raise ConfigError(f"{where}: unknown key {_join(path, str(unknown[0]))!r}; expected one "
+                          f"of {', '.join(sorted(names))}")
+    missing = [f.name for f in fields if f.name not in data and not f.metadata.get("optional")]
     if missing:
-        raise ConfigError(f"{where}: missing key {_join(path, missing[0])!r}")
-    for name in fields & set(data):
-        hint = hints[name]
-        sub = data[name]
+        raise ConfigError(f"{where}: missing key {_join(path, sorted(missing)[0])!r}")
+    for field in (f for f in fields if f.name in data):  # in the schema's order: deterministic
+        name, hint, sub = field.name, hints[field.name], data[field.name]
         if dataclasses.is_dataclass(hint):
             _check_keys(hint, sub, _join(path, name), where)
         elif hint in (float, int) and (isinstance(sub, bool) or not isinstance(sub, (int, float))):
             raise ConfigError(f"{where}: {_join(path, name)} = {sub!r} must be a number")
+        elif "plausible" in field.metadata:
+            field.metadata["plausible"].check(sub, _join(path, name), where)
         elif hint is str and not isinstance(sub, str):
             raise ConfigError(f"{where}: {_join(path, name)} = {sub!r} must be a string")
         elif typing.get_origin(hint) is list:
@@ -340,18 +461,29 @@ def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path else key
 
 
+def read_yaml_text(filename: str | Path) -> str:
+    """The text of a YAML file; :class:`ConfigError` in one line if it cannot be read or is not
+    text (a binary file: the first byte that is not UTF-8 and its offset)."""
+    try:
+        return Path(filename).read_text(encoding="utf-8")
+    except OSError as e:
+        raise ConfigError(f"{filename}: cannot read file ({e.strerror})") from None
+    except UnicodeDecodeError as e:
+        raise ConfigError(f"{filename}: not a text file (byte {e.object[e.start]:#04x} at offset "
+                          f"{e.start} is not UTF-8); expected YAML") from None
+
+
 def load_typed(schema: type, filename: str | Path):
     """Load ``filename`` into ``schema`` strictly; :class:`ConfigError` names key and file."""
     where = str(filename)
-    try:
-        text = Path(filename).read_text()
-    except OSError as e:
-        raise ConfigError(f"{where}: cannot read file ({e.strerror})") from None
+    text = read_yaml_text(filename)
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
     _check_keys(schema, raw, "", where)
+    from pydrake.common.yaml import yaml_load_typed  # once the checks above have passed
+
     try:
         obj = yaml_load_typed(schema=schema, data=text)
     except (RuntimeError, ValueError, TypeError) as e:
@@ -366,6 +498,8 @@ def load_typed_mapping(schema: type, data: typing.Any, where: str):
     ``where`` names the source in error messages; raises :class:`ConfigError`.
     """
     _check_keys(schema, data, "", where)
+    from pydrake.common.yaml import yaml_load_typed
+
     try:
         obj = yaml_load_typed(schema=schema, data=yaml.safe_dump(data))
     except (RuntimeError, ValueError, TypeError) as e:

@@ -92,10 +92,17 @@ def git_revision() -> str:
 
 
 def provenance(seed: int | None = None, command: list[str] | None = None) -> dict:
-    """Provenance block stored with every artefact: command line, git revision, seed, time."""
+    """Provenance block stored with every artefact: command line, git revision, seed, time.
+
+    The program's own path is reduced to its name (``drake-cert``, not the absolute path of
+    the virtual environment that ran it): artefacts are read on other machines.
+    """
+    words = list(command if command is not None else sys.argv)
+    if words:
+        words[0] = os.path.basename(words[0]) or words[0]
     return {
         "schema_version": SCHEMA_VERSION,
-        "command": " ".join(command if command is not None else sys.argv),
+        "command": " ".join(words),
         "git_revision": git_revision(),
         "seed": seed,
         "created_utc": datetime.now(UTC).strftime("%Y-%m-%dT%H:%M:%SZ"),

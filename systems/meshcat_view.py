@@ -16,8 +16,6 @@ import numpy as np
 from pydrake.geometry import Box, Meshcat, Rgba
 from pydrake.math import RigidTransform, RotationMatrix
 
-from drake_cert.io import atomic_write_text
-
 STATUS_COLOURS = {  # status code (systems.certified_interval) -> RGBA
     0: (0.1, 0.75, 0.2, 1.0),  # certified
     1: (1.0, 0.65, 0.0, 1.0),  # envelope
@@ -93,8 +91,3 @@ def record_drives(tapes: dict, route, *, lane_width_m: float, meshcat: Meshcat |
     meshcat.StopRecording()
     meshcat.PublishRecording()
     return meshcat
-
-
-def write_static_html(meshcat: Meshcat, path) -> None:
-    """Write the recorded scene as one standalone HTML page (atomically)."""
-    atomic_write_text(path, meshcat.StaticHtml())

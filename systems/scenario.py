@@ -16,7 +16,12 @@ from pathlib import Path
 
 from pydrake.systems.analysis import SimulatorConfig
 
-from drake_cert.config import load_typed
+from drake_cert.config import (
+    SPEED_PLAUSIBLE,
+    check_frame_size,
+    check_plausible_fields,
+    load_typed,
+)
 from drake_cert.errors import ConfigError
 from systems.route import SegmentSpec
 
@@ -51,7 +56,7 @@ class CameraSettings:
 
     rate_hz: float = 10.0  # frames per second; the perception period is 1 / rate_hz (s)
     look_ahead_m: float = 40.0  # the frame shows the road this far ahead of the car (m)
-    frame_size: int = 64  # frames are frame_size x frame_size RGB pixels
+    frame_size: int = 64  # frames are frame_size x frame_size RGB pixels (16 to 1024)
     frames_dir: str = ""  # "" renders frames; else a class-per-folder image directory
 
     def validate(self, where: str) -> None:
@@ -154,14 +159,18 @@ class MotionSettings:
 
     max_decel_mps2: float = 4.0  # largest braking deceleration (m/s^2)
     max_accel_mps2: float = 2.0  # largest acceleration (m/s^2)
-    initial_speed_mps: float = 0.0  # speed at t = 0 (m/s); 0: the envelope design's speed
-    stop_speed_mps: float = 5.0  # a command below this brakes the car to rest (m/s)
+    # speed at t = 0 (m/s); 0: the envelope design's speed
+    initial_speed_mps: float = dataclasses.field(default=0.0,
+                                                 metadata={"plausible": SPEED_PLAUSIBLE})
+    # a command below this brakes the car to rest (m/s)
+    stop_speed_mps: float = dataclasses.field(default=5.0, metadata={"plausible": SPEED_PLAUSIBLE})
 
     def validate(self, where: str) -> None:
         _positive(self.max_decel_mps2, "motion.max_decel_mps2", where)
         _positive(self.max_accel_mps2, "motion.max_accel_mps2", where)
         _non_negative(self.initial_speed_mps, "motion.initial_speed_mps", where)
         _non_negative(self.stop_speed_mps, "motion.stop_speed_mps", where)
+        check_plausible_fields(self, "motion.", where)
 
 
 @dataclasses.dataclass
@@ -186,7 +195,7 @@ class Scenario:
     # the shortest stretch of one road condition the car assumes (m): decisions bridge
     # abstentions over shorter spans; a route with a shorter stretch (first and last
     # excepted) is refused (systems.driving.check_route_is_seen)
-    min_condition_length_m: float = 30.0
+    min_condition_length_m: float = 60.0
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)
     perception: PerceptionSettings = dataclasses.field(default_factory=PerceptionSettings)
@@ -213,6 +222,9 @@ class Scenario:
                                   ": the radius must be at least 50 m (|kappa| <= 0.02 1/m)")
             if not seg.condition:
                 raise ConfigError(f"{where}: route[{i}].condition must not be empty")
+        # before anything allocates a frame (the camera's placeholder is one)
+        check_frame_size(self.camera.frame_size, f"{where}: camera.frame_size",
+                         self.perception.batch_size)
         for part in (self.camera, self.perception, self.attack, self.motion, self.controller):
             part.validate(where)
         if self.controller.law == "gradient" and self.simulator.integration_scheme not in \

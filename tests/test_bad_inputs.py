@@ -1,5 +1,5 @@
 """Every bad input gets one readable line and exit code 2 from the CLI (or a typed exception
-from the API) and leaves no partial file (issue 6, item 3).
+from the API) and leaves no partial file (DESIGN 1).
 
 In-process ``cli.main`` calls with ``capsys``; a subprocess only where the test needs a fresh
 interpreter (is torch imported by ``--help``?) or a signal (Ctrl-C while torch is imported).
@@ -246,6 +246,11 @@ def test_a_malformed_stiffness_csv_is_a_config_error(tmp_path, capsys):
                                             "sand/a.png,sand,grippy\n")
     with pytest.raises(ConfigError, match="stiffness.csv:2"):
         load_image_folder(tmp_path, preset="rtk-like")
+    (tmp_path / "stiffness.csv").write_text("file,label,stiffness_n_per_rad\n"
+                                            "sand/a.png,sand,35\n")  # kN/rad
+    with pytest.raises(ConfigError, match=r"stiffness.csv:2: stiffness_n_per_rad = 35 N/rad is "
+                                          r"implausibly small .* \(kN/rad\? write 35000\)"):
+        load_image_folder(tmp_path, preset="rtk-like")
 
 
 # --------------------------------------------------------------------------- start-up
@@ -281,3 +286,123 @@ def test_version_prints_the_package_version(capsys):
     assert exit_info.value.code == 0
     assert capsys.readouterr().out.strip() == f"drake-cert {drake_cert.__version__}"
 
+
+
+# --------------------------------------------------------------------------- units and files
+
+def _vehicle_with(tmp_path, old: str, new: str) -> str:
+    text = (ROOT / "drake_cert/data/vehicle.yaml").read_text()
+    assert old in text
+    path = tmp_path / "vehicle.yaml"
+    path.write_text(text.replace(old, new))
+    return str(path)
+
+
+def test_a_vehicle_mass_in_tonnes_is_one_line(tmp_path, capsys):
+    err = one_line_exit_2(capsys, ["synthesize", "--vehicle",
+                                   _vehicle_with(tmp_path, "mass_kg: 1573.0", "mass_kg: 1.573")])
+    assert "mass_kg = 1.573 kg is implausibly small for a vehicle mass" in err
+    assert "(tonnes? write 1573)" in err
+
+
+def test_a_conditions_file_in_kn_per_rad_is_one_line(tmp_path, capsys):
+    text = (ROOT / "drake_cert/data/conditions.yaml").read_text()
+    path = tmp_path / "conditions.yaml"
+    path.write_text(text.replace("000.0", ".0"))  # every stiffness in kN/rad
+    err = one_line_exit_2(capsys, ["synthesize", "--conditions", str(path)])
+    assert "stiffness_lo_n_per_rad = 80 N/rad is implausibly small" in err
+    assert "(kN/rad? write 80000)" in err
+
+
+def test_simulate_stiffness_in_kn_per_rad_is_one_line(designs_file, capsys):
+    err = one_line_exit_2(capsys, ["simulate", "--designs", designs_file, "--stiffness", "100"])
+    assert err == ("drake-cert simulate: error: --stiffness 100 N/rad is implausibly small for a "
+                   "cornering stiffness per tire, below 1000 N/rad (kN/rad? write 100000)")
+
+
+@pytest.mark.parametrize("command", [["synthesize", "--vehicle"], ["drive", "--scenario"],
+                                     ["drive", "--vehicle"]])
+def test_a_binary_file_given_as_yaml_is_one_line(tmp_path, capsys, command):
+    path = tmp_path / "photo.yaml"
+    path.write_bytes(bytes(range(256)) * 4)
+    err = one_line_exit_2(capsys, [*command, str(path)])
+    assert f"{path}: not a text file (byte 0x80 at offset 128 is not UTF-8)" in err
+
+
+def test_a_scenario_frame_size_of_100000_says_how_much_memory_it_would_need(tmp_path, capsys):
+    import yaml
+
+    data = yaml.safe_load((ROOT / "drake_cert/data/scenarios/dry_to_snow.yaml").read_text())
+    data["camera"]["frame_size"] = 100_000
+    path = tmp_path / "huge.yaml"
+    path.write_text(yaml.safe_dump(data))
+    err = one_line_exit_2(capsys, ["drive", "--scenario", str(path)])
+    assert "camera.frame_size = 100000 px: one 100000x100000 RGB frame takes 112 GiB" in err
+    assert "the limit is 1024 px" in err
+
+
+@pytest.mark.parametrize("command", [[*CERTIFY, "--sigma", "0.25"],
+                                     ["generate", "--preset", "rtk-like", "--out", "x.png"]])
+def test_a_frame_size_of_100000_is_one_line_before_any_model_or_frame(command, capsys):
+    err = one_line_exit_2(capsys, [*command, "--size", "100000"])
+    assert "--size 100000 px: one 100000x100000 RGB frame takes 112 GiB in float32" in err
+
+
+@pytest.mark.parametrize("command", sorted(cli.COMMANDS))
+def test_argument_errors_are_one_line_for_every_command(command, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([command, "--no-such-option"])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2 and len(err.splitlines()) == 1, err
+    # a command with required options names those first, else the unknown option
+    assert err.startswith("drake-cert") and ": error: " in err and err.endswith("--help)"), err
+    assert "--no-such-option" in err or "are required" in err, err
+
+
+def test_certify_n_0_is_one_line_and_help_still_works(capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main([*CERTIFY, "--sigma", "0.25", "--n", "0"])
+    err = capsys.readouterr().err.strip()
+    assert exit_info.value.code == 2
+    assert err == ("drake-cert certify: error: argument --n: 0 must be a positive integer "
+                   "(see drake-cert certify --help)")
+    with pytest.raises(SystemExit) as exit_info:
+        cli.main(["certify", "--help"])
+    assert exit_info.value.code == 0 and "--frames-dir" in capsys.readouterr().out
+
+
+CONFIG_ERROR_IMPORTS = """
+import sys
+from drake_cert import cli
+HEAVY = ("pydrake", "cvxpy", "torch")
+def loaded():
+    return [m for m in HEAVY if m in sys.modules]
+for argv in {light!r}:
+    assert cli.main(argv) == 2
+    print("LIGHT", argv[0], loaded())
+for argv in {scenario!r}:
+    assert cli.main(argv) == 2
+    print("SCENARIO", argv[0], loaded())
+"""
+
+
+def test_a_bad_file_is_answered_before_pydrake_cvxpy_or_torch_are_imported(tmp_path,
+                                                                           designs_file):
+    binary = tmp_path / "binary.yaml"
+    binary.write_bytes(b"\xff\xfe\x00")
+    tonnes = _vehicle_with(tmp_path, "mass_kg: 1573.0", "mass_kg: 1.573")
+    huge = tmp_path / "huge.yaml"
+    huge.write_text((ROOT / "drake_cert/data/scenarios/dry_to_snow.yaml").read_text()
+                    .replace("frame_size: 64 ", "frame_size: 100000 "))
+    light = [["synthesize", "--vehicle", tonnes], ["synthesize", "--vehicle", str(binary)],
+             ["drive", "--vehicle", tonnes],
+             ["simulate", "--designs", designs_file, "--stiffness", "100"],
+             ["certify", "--preset", "rtk-like", "--sigma", "0.25", "--size", "100000"],
+             ["generate", "--preset", "rtk-like", "--out", "x.png", "--size", "100000"]]
+    out = _fresh_python(CONFIG_ERROR_IMPORTS.format(light=light, scenario=[
+        ["drive", "--scenario", str(huge)]]))
+    lines = out.stdout.splitlines()
+    assert out.returncode == 0, out.stderr
+    assert lines[:len(light)] == [f"LIGHT {argv[0]} []" for argv in light], out.stdout
+    # a scenario's schema holds Drake's SimulatorConfig: pydrake, but neither cvxpy nor torch
+    assert lines[len(light):] == ["SCENARIO drive ['pydrake']"], out.stdout

@@ -1,5 +1,6 @@
 """Typed YAML configuration: defaults load, bad files give one ConfigError naming key and file."""
 
+import re
 import shutil
 
 import pytest
@@ -122,3 +123,82 @@ def test_a_copy_of_the_defaults_loads(tmp_path):
     config.load_vehicle(tmp_path / "vehicle.yaml")
     config.load_conditions(tmp_path / "conditions.yaml")
     config.load_settings(tmp_path / "settings.yaml")
+
+
+# --------------------------------------------------------------------------- units
+
+@pytest.mark.parametrize(("overrides", "expected"), [
+    ({"mass_kg": 1.573}, "mass_kg = 1.573 kg is implausibly small for a vehicle mass, below "
+                         "100 kg (tonnes? write 1573)"),
+    ({"mass_kg": 1_573_000}, "(g? write 1573)"),
+    ({"yaw_inertia_kg_m2": 2.873}, "(t m^2? write 2873)"),
+    ({"lf_m": 1100}, "lf_m = 1100 m is implausibly large for a CG-to-axle distance, above 10 m "
+                     "(mm? write 1.1)"),
+    ({"lr_m": 158}, "(cm? write 1.58)"),
+    ({"lane_width_m": 350}, "(cm? write 3.5)"),
+    ({"car_width_m": 1800}, "(mm? write 1.8)"),
+    ({"lane_width_m": 25.0}, "lane_width_m = 25 m is implausibly large for a lane width, above "
+                             "20 m"),
+    ({"tire_stiffness_scale": 130000}, "not a stiffness"),
+])
+def test_a_vehicle_value_in_the_wrong_unit_names_the_likely_unit(tmp_path, overrides, expected):
+    path = _write(tmp_path, "car.yaml", _vehicle_text(**overrides))
+    with pytest.raises(ConfigError) as info:
+        config.load_vehicle(path)
+    assert str(info.value).startswith(f"{path}: ") and expected in str(info.value)
+    assert len(str(info.value).splitlines()) == 1
+
+
+@pytest.mark.parametrize(("name", "old", "new", "expected"), [
+    ("conditions.yaml", "stiffness_lo_n_per_rad: 20000.0", "stiffness_lo_n_per_rad: 20.0",
+     "conditions[4].stiffness_lo_n_per_rad = 20 N/rad is implausibly small for a cornering "
+     "stiffness per tire, below 1000 N/rad (kN/rad? write 20000)"),
+    ("conditions.yaml", "friction_mu: 0.9}", "friction_mu: 90}",
+     "conditions[0].friction_mu = 90 is implausibly large for a friction coefficient, above 2 "
+     "(percent? write 0.9)"),
+    ("settings.yaml", "speed_max_mps: 30.0", "speed_max_mps: 108.0",
+     "synthesis.speed_max_mps = 108 m/s is implausibly large for a road vehicle's speed, above "
+     "100 m/s (km/h? write 30)"),
+])
+def test_conditions_and_settings_in_the_wrong_unit_name_the_likely_unit(tmp_path, name, old, new,
+                                                                         expected):
+    src = config.default_path(name).read_text()
+    assert old in src
+    path = _write(tmp_path, name, src.replace(old, new))
+    load = config.load_conditions if name == "conditions.yaml" else config.load_settings
+    with pytest.raises(ConfigError, match=re.escape(expected)):
+        load(path)
+
+
+def test_the_plausible_ranges_accept_every_shipped_vehicle_and_a_2600_kg_van(tmp_path):
+    for path in [config.default_path("vehicle.yaml"),
+                 *sorted(config.default_path("vehicles").glob("*.yaml"))]:
+        config.load_vehicle(path)
+    van = _write(tmp_path, "van.yaml", _vehicle_text(mass_kg=2600.0, yaw_inertia_kg_m2=5200.0,
+                                                     lf_m=1.6, lr_m=1.9, car_width_m=2.05))
+    assert config.load_vehicle(van).mass_kg == 2600.0
+
+
+def test_validate_applies_the_ranges_to_a_vehicle_built_in_code():
+    import dataclasses
+
+    with pytest.raises(ConfigError, match=re.escape("tonnes? write 1500")):
+        dataclasses.replace(config.load_vehicle(), mass_kg=1.5).validate("my car")
+
+
+def test_a_binary_file_is_one_config_error_naming_the_file(tmp_path):
+    path = tmp_path / "vehicle.yaml"
+    path.write_bytes(b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR")
+    with pytest.raises(ConfigError, match=re.escape(f"{path}: not a text file (byte 0x89 at "
+                                                    "offset 0 is not UTF-8); expected YAML")):
+        config.load_vehicle(path)
+
+
+def test_check_frame_size_says_how_much_memory_and_the_limit():
+    config.check_frame_size(config.FRAME_SIZE_MAX, "--size", 500)  # the limit itself passes
+    with pytest.raises(ConfigError) as info:
+        config.check_frame_size(100_000, "--size", 500)
+    assert str(info.value) == (
+        "--size 100000 px: one 100000x100000 RGB frame takes 112 GiB in float32, a batch of "
+        "500 noisy copies 54.6 TiB; the limit is 1024 px (12 MiB a frame; the shipped models "
+        "take 64 px)")

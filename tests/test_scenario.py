@@ -87,3 +87,19 @@ def test_missing_keys_and_bad_values_raise_config_error(tmp_path, edit, key):
 def test_an_unknown_scenario_name_lists_the_shipped_ones():
     with pytest.raises(ConfigError, match="dry_to_snow"):
         load_scenario("no_such_scenario")
+
+
+def test_a_frame_size_that_cannot_fit_in_memory_says_how_much_it_needs(tmp_path):
+    path = _write_variant(tmp_path, lambda d: d["camera"].update(frame_size=100_000))
+    with pytest.raises(ConfigError, match=re.escape(
+            "camera.frame_size = 100000 px: one 100000x100000 RGB frame takes 112 GiB in float32, "
+            "a batch of 500 noisy copies 54.6 TiB; the limit is 1024 px")):
+        load_scenario(path)
+
+
+def test_a_speed_in_km_per_h_names_the_unit(tmp_path):
+    path = _write_variant(tmp_path, lambda d: d["motion"].update(initial_speed_mps=108.0))
+    with pytest.raises(ConfigError, match=re.escape("motion.initial_speed_mps = 108 m/s is "
+                                                    "implausibly large for a road vehicle's speed, "
+                                                    "above 100 m/s (km/h? write 30)")):
+        load_scenario(path)

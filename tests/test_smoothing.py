@@ -400,8 +400,9 @@ def test_failed_compilation_falls_back_to_eager_with_a_warning(monkeypatch):
 MEASURE_FAULTS = """
 import resource, sys, torch
 torch.set_num_threads(1)
-from drake_cert.certification.sampler import NoisySampler
+from drake_cert.certification.sampler import NoisySampler, retain_freed_memory
 from drake_cert.perception.models import load_model
+retain_freed_memory()  # as the long-running commands do (nothing does it implicitly)
 sampler = NoisySampler(load_model("carla-like", "classify", 0.5), 0.5, "cpu", False)
 x = torch.rand(3, 64, 64)
 with torch.inference_mode():  # as the callers do

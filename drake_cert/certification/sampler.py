@@ -71,7 +71,11 @@ def retain_freed_memory() -> bool:
     faults after warm-up; ``benchmarks/bench_sampler_memory.py`` measures both policies side
     by side (batches of 250, one thread: 1.34x samples/s in bf16, 1.74x in fp32), at the cost
     of holding the peak (about 0.8 GB per process). Allocation policy only: no number changes
-    (the benchmark checks the outputs). Process-wide, once; False (nothing done) off glibc.
+    (the benchmark checks the outputs). Process-wide and not undone, so nothing calls it
+    implicitly (importing this module or building a sampler leaves the allocator alone, e.g.
+    in a notebook kernel): the long-running entry points do, explicitly (the ``certify``,
+    ``drive`` and ``reproduce`` commands, ``drive --compare``'s worker processes, Ray workers).
+    Once per process; True if glibc accepted both settings, False (nothing done) off glibc.
     """
     if not sys.platform.startswith("linux"):
         return False
@@ -102,7 +106,6 @@ class NoisySampler:
                                      f"{type(base).__name__}")
         self.sigma = float(sigma)
         self.device = resolve_device(device)
-        retain_freed_memory()
         self.base = base.to(self.device).eval()
         self.compiled = False
         self.compile_seconds = 0.0

@@ -2,8 +2,10 @@
 
 Sub-commands live in ``drake_cert.cli.<name>``, imported only when used (so that
 ``drake-cert verify`` does not import torch). Each module defines ``configure(parser)`` and
-``run(args) -> int``. Machine-readable output goes to stdout (``--json``), progress and
-messages to stderr.
+``run(args) -> int``, and may define ``check(args)``: the checks of the command's files and
+numbers that need no heavy library, run before the command's heavy imports (so a mistake in a
+vehicle or scenario file is answered before cvxpy or torch load). Machine-readable output goes
+to stdout (``--json``), progress and messages to stderr.
 """
 
 import argparse
@@ -76,10 +78,14 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
         return f"{text} (default: {'none' if default is None else '%(default)s'})"
 
 
+# Commands whose noisy sampling runs long: glibc is asked to keep freed memory there
+# (certification.sampler.retain_freed_memory), and nowhere else (not in a notebook kernel).
+LONG_SAMPLING = ("certify", "drive", "reproduce")
+
+
 class _Parser(argparse.ArgumentParser):
-    def error(self, message):  # argparse's own error path: one line, exit code 2
-        self.print_usage(sys.stderr)
-        print(f"{self.prog}: error: {message}", file=sys.stderr)
+    def error(self, message):  # argparse's own error path: one line (no usage), exit code 2
+        print(f"{self.prog}: error: {message} (see {self.prog} --help)", file=sys.stderr)
         sys.exit(2)
 
 
@@ -104,10 +110,16 @@ def main(argv: list[str] | None = None) -> int:
         if args.command is None:
             parser.print_help(sys.stderr)
             return 2
+        module = importlib.import_module(f"drake_cert.cli.{args.command}")
         with interrupt_deferred():
+            if hasattr(module, "check"):
+                module.check(args)  # files and numbers first: a mistake costs no heavy import
             for name in HEAVY_IMPORTS.get(args.command, ("numpy",)):
                 importlib.import_module(name)
-        module = importlib.import_module(f"drake_cert.cli.{args.command}")
+        if args.command in LONG_SAMPLING:
+            from drake_cert.certification.sampler import retain_freed_memory
+
+            retain_freed_memory()
         return int(module.run(args) or 0)
     except DrakeCertError as e:
         print(f"drake-cert {command}: error: {e}", file=sys.stderr)

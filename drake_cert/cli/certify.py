@@ -88,6 +88,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--json", action="store_true", help="print all results as JSON")
 
 
+def check(args: argparse.Namespace) -> None:
+    """Before torch is imported (``cli.main`` runs this first): a ``--size`` whose frames
+    would not fit in memory, with how much they would take."""
+    from drake_cert.config import check_frame_size
+
+    if args.size is not None:
+        check_frame_size(args.size, "--size", args.batch_size)
+
+
 def settings_from_args(args: argparse.Namespace):
     """The validated :class:`CertifySettings` of the command line."""
     from drake_cert.experiments.perception_eval import CertifySettings

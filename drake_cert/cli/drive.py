@@ -1,4 +1,4 @@
-"""``drake-cert drive``: drive a route in the certified closed-loop Diagram (issue 7, DESIGN 6).
+"""``drake-cert drive``: drive a route in the certified closed-loop Diagram (DESIGN 6).
 
 Loads a scenario (a shipped name or a YAML file), synthesizes the design table (or reads
 ``--designs``), builds the Diagram camera -> attacker -> perception smoothing -> certified
@@ -58,6 +58,19 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="record the drive in Meshcat to this standalone HTML page")
     parser.add_argument("--out", metavar="TAPE", default=None,
                         help="write the tape(s) to this .csv or .npz file")
+
+
+def check(args) -> None:
+    """Options, output paths, ``--vehicle`` and the scenario file, before torch and cvxpy are
+    imported (``cli.main`` runs this first; the scenario's schema imports pydrake)."""
+    from drake_cert.config import load_vehicle
+
+    _check_outputs(args)
+    if args.vehicle:
+        load_vehicle(args.vehicle)
+    from systems.scenario import load_scenario
+
+    load_scenario(args.scenario)
 
 
 def _check_outputs(args) -> None:
@@ -195,9 +208,11 @@ def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None, in
 
 def _drive_with_bar(choices: dict, common: dict, position: int):
     """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
+    from drake_cert.certification.sampler import retain_freed_memory
     from drake_cert.cli.progress import progress_bar
     from systems.driving import drive_scenario
 
+    retain_freed_memory()  # a --compare worker process runs this, not cli.main
     scenario = _scenario_for(**choices)
 
     horizon = scenario.route_length_m / 10.0  # a guess; the bar grows past it if needed

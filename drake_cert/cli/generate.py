@@ -31,23 +31,33 @@ def configure(parser) -> None:
     parser.add_argument("--threads", type=int, default=1, help="torch CPU threads")
 
 
-def run(args) -> int:
-    import torch
+def check(args) -> None:
+    """Options, ``--conditions`` and output paths, before torch is imported (``cli.main`` runs
+    this first); keeps the conditions table as ``args.table``."""
+    from drake_cert.config import check_frame_size, load_conditions
 
-    from drake_cert.config import load_conditions
-    from drake_cert.perception.datasets import load_split
-
-    torch.set_num_threads(max(1, int(args.threads)))
     if args.out is None and args.export is None:
         raise ConfigError("nothing to do: give --out FILE.png and/or --export DIR")
     for key in ("per_class", "size", "scale"):
         if getattr(args, key) <= 0:
             raise ConfigError(f"--{key.replace('_', '-')} {getattr(args, key)} must be positive")
+    check_frame_size(args.size, "--size")
     if args.seed < 0:
         raise ConfigError(f"--seed {args.seed} must be >= 0")
-    table = load_conditions(args.conditions)
-    table.preset(args.preset)
+    args.table = load_conditions(args.conditions)
+    args.table.preset(args.preset)
     check_outputs(args)
+
+
+def run(args) -> int:
+    import torch
+
+    from drake_cert.perception.datasets import load_split
+
+    torch.set_num_threads(max(1, int(args.threads)))
+    if not hasattr(args, "table"):
+        check(args)
+    table = args.table
     count = args.frames_per_class
     if args.export is None:
         count = args.per_class

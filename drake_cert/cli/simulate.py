@@ -18,7 +18,7 @@ import sys
 import time
 
 from drake_cert import metrics
-from drake_cert.config import format_label_range, parse_label_range
+from drake_cert.config import STIFFNESS_PLAUSIBLE, format_label_range, parse_label_range
 from drake_cert.errors import ConfigError
 from drake_cert.io import atomic_write_bytes, check_writable, provenance
 
@@ -97,6 +97,12 @@ def _stiffness_values(design, choice: str) -> list[float]:
     named = {"lo": [lo], "mid": [0.5 * (lo + hi)], "hi": [hi], "ends": [lo, hi]}
     if choice in named:
         return named[choice]
+    return [stiffness_number(choice)]
+
+
+def stiffness_number(choice: str) -> float:
+    """``--stiffness`` given as a number: N/rad per tire, positive and plausible (a number
+    below 1000 N/rad is refused as kN/rad written by mistake)."""
     try:
         value = float(choice)
     except ValueError:
@@ -104,11 +110,15 @@ def _stiffness_values(design, choice: str) -> list[float]:
                           "or a number in N/rad") from None
     if not (math.isfinite(value) and value > 0):
         raise ConfigError(f"--stiffness {choice!r} must be a positive number of N/rad")
-    return [value]
+    STIFFNESS_PLAUSIBLE.check(value, "--stiffness")
+    return value
 
 
-def check_arguments(args) -> None:
-    """Every check that needs no design file: numbers in range, output paths writable."""
+def check(args) -> None:
+    """Every check that needs no design file (``cli.main`` runs it before importing pydrake):
+    numbers in range (``--stiffness`` too), output paths writable."""
+    if args.stiffness not in STIFFNESS_CHOICES:
+        stiffness_number(args.stiffness)
     for name in ("friction", "speed", "radius", "duration"):
         value = getattr(args, name)
         if value is not None and not (math.isfinite(value) and value > 0):
@@ -146,8 +156,7 @@ def run(args) -> int:
     from systems.closed_loop import simulate
     from systems.road import Road
 
-    check_arguments(args)
-    table = load_design_file(args.designs)
+    table = load_design_file(args.designs)  # cli.main has run check(args)
     vehicle, settings = table.vehicle, table.settings
     if args.speed is not None:
         check_speed(args.speed, settings.synthesis)

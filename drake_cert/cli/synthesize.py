@@ -73,21 +73,29 @@ def binding_condition(designs) -> str:
     return max(dict.fromkeys(failed), key=failed.count) if failed else "none"
 
 
-def run(args: argparse.Namespace) -> int:
-    from drake_cert.cli.progress import progress_bar
+def check(args: argparse.Namespace) -> None:
+    """``--out`` writable and the three files loaded and checked (``cli.main`` runs this
+    before cvxpy and pydrake's systems are imported); keeps them as ``args.loaded``."""
     from drake_cert.config import load_conditions, load_settings, load_vehicle
-    from drake_cert.errors import ConfigError
-    from drake_cert.io import provenance
-    from synthesis.design_io import DesignTable, save_design_table
-    from synthesis.table import synthesize_table
 
     if args.out:
         from drake_cert.io import check_writable
 
         check_writable(args.out, "--out")  # before the synthesis, not after it
-    vehicle = load_vehicle(args.vehicle)
-    conditions = load_conditions(args.conditions)
-    settings = load_settings(args.settings)
+    args.loaded = (load_vehicle(args.vehicle), load_conditions(args.conditions),
+                   load_settings(args.settings))
+
+
+def run(args: argparse.Namespace) -> int:
+    from drake_cert.cli.progress import progress_bar
+    from drake_cert.errors import ConfigError
+    from drake_cert.io import provenance
+    from synthesis.design_io import DesignTable, save_design_table
+    from synthesis.table import synthesize_table
+
+    if not hasattr(args, "loaded"):
+        check(args)
+    vehicle, conditions, settings = args.loaded
 
     def progress(ranges):
         return progress_bar(ranges, desc="synthesize", unit="range", leave=False)

@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from drake_cert.config import ConditionsTable, load_conditions
+from drake_cert.config import STIFFNESS_PLAUSIBLE, ConditionsTable, load_conditions
 from drake_cert.errors import ConfigError
 from drake_cert.perception.frames import generate_frames
 from drake_cert.perception.frameset import FrameSet
@@ -95,12 +95,14 @@ def clear_cache() -> None:
 
 
 def disk_cache_dir() -> Path | None:
-    """``$DRAKE_CERT_DATA_CACHE``, else ``data_cache/`` of a source checkout, else None."""
+    """``$DRAKE_CERT_DATA_CACHE`` ("" disables the cache), else ``data_cache/`` at the root of
+    the source checkout this package runs from (the folder holding ``drake_cert/`` and
+    ``pyproject.toml``: a clone or an editable install), else None (an installed wheel)."""
     env = os.environ.get("DRAKE_CERT_DATA_CACHE")
     if env is not None:
         return Path(env) if env else None
-    repo = Path(__file__).resolve().parents[1]
-    return repo / "data_cache" if (repo / ".git").exists() else None
+    root = Path(__file__).resolve().parents[2]  # drake_cert/perception/datasets.py -> root
+    return root / "data_cache" if (root / "pyproject.toml").is_file() else None
 
 
 def _disk_cache_file(key: tuple) -> Path | None:
@@ -215,6 +217,7 @@ def read_stiffness_csv(path: Path) -> dict[str, float]:
         if not (math.isfinite(value) and value > 0):
             raise ConfigError(f"{path}:{i}: stiffness_n_per_rad = {value!r} must be a "
                               "positive number of N/rad")
+        STIFFNESS_PLAUSIBLE.check(value, "stiffness_n_per_rad", f"{path}:{i}")  # kN/rad?
     return out
 
 
