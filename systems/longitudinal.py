@@ -1,4 +1,4 @@
-"""Longitudinal motion: the car's speed follows the certified speed command (issue 7, item 5).
+"""Longitudinal motion: the car's speed follows the certified speed command (DESIGN 6.3-6.4).
 
 Input port:
   ``decision``             abstract; any object with ``position_m`` (the look point from which

@@ -1,4 +1,4 @@
-"""The L1 adaptive controller that switches designs and follows the speed at run time (issue 7).
+"""The L1 adaptive controller that switches designs and follows the speed at run time (DESIGN 5.6).
 
 Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
               ``curvature_per_m`` kappa (1/m), ``speed_mps`` V (m/s),

@@ -1,4 +1,4 @@
-"""The certified-interval block with the robust conformal interval (issue 10 in the Diagram):
+"""The certified-interval block with the robust conformal interval (DESIGN 3.6) in the Diagram:
 where the smoothed classifier is confidently wrong, the safe-set interval misses the true
 stiffness and the conformal one keeps it."""
 

@@ -1,4 +1,4 @@
-"""A curvature step (straight -> design radius) makes no steering spike (issue 9, item 4).
+"""A curvature step (straight -> design radius) makes no steering spike (DESIGN 4.2-4.3).
 
 The measured e2dot = r - V kappa jumps by -V dkappa at a step; the predictor holds its state
 as q = s + V kappa e4 (systems.l1_law.predicted_measurement), so the prediction error, and
@@ -7,7 +7,7 @@ with it the piecewise-constant estimate, does not jump. Before, the steering sat
 spike was the front tire, at 85% of mu g on the arc, asked for a step in yaw rate: the road
 preview of the feedforward (controller.preview_ahead_s / preview_window_s) starts the turn
 0.4 s ahead, and the gradient law's sets leave a margin of 2 on the design curvature
-(controller.min_radius_m), so its estimate stays off the projection boundary (issue 9, 3).
+(controller.min_radius_m), so its estimate stays off the projection boundary (DESIGN 4.4).
 """
 
 import dataclasses

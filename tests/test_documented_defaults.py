@@ -1,5 +1,5 @@
 """Users can read every default: each option's ``--help`` shows it, and each field of the shipped
-YAML files carries a comment with its meaning (issue 6, item 5)."""
+YAML files carries a comment with its meaning."""
 
 import argparse
 import dataclasses

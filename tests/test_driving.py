@@ -1,4 +1,4 @@
-"""The certified closed loop, camera frame to steering, in one Drake Diagram (issue 7).
+"""The certified closed loop, camera frame to steering, in one Drake Diagram (DESIGN 6).
 
 Claims checked on drives (Fiala plant, shipped models and scenarios):
 - under a stability attack inside its certificate, the certified car stays in its lane, where

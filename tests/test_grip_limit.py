@@ -19,7 +19,7 @@ def _in_lane(design, stiffness, mu, speed, road):
 
 
 def test_heavy_rain_speed_is_within_90_percent_of_the_in_lane_limit_and_stays_in_lane():
-    # The in-lane limit on the Fiala plant is a cliff near sqrt(mu g R) (issue 9): in lane at
+    # The in-lane limit on the Fiala plant is a cliff near sqrt(mu g R) (DESIGN 5.3d): in lane at
     # the certified speed and out of it at certified / 0.9 puts the limit below certified / 0.9.
     cond = load_conditions().condition("heavy_rain")
     radius = SETTINGS.synthesis.design_radius_m

@@ -1,4 +1,4 @@
-"""Longitudinal motion (issue 7, item 5): speed follows the certified command, bounded."""
+"""Longitudinal motion (DESIGN 6.3-6.4): speed follows the certified command, bounded."""
 
 import math
 

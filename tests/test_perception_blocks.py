@@ -1,4 +1,4 @@
-"""Camera, attacker, perception smoothing and certified interval as Drake systems (issue 7)."""
+"""Camera, attacker, perception smoothing and certified interval as Drake systems (DESIGN 6.1)."""
 
 import dataclasses
 import math

@@ -1,5 +1,5 @@
 """README.md's "equation / claim | implemented in | checked by" table stays true: every function
-it names imports, and every test it names exists (issue 6, item 5).
+it names imports, and every test it names exists.
 
 Reading rules (the README's own shorthand): in "implemented in", a bare name after a dotted
 path lives in the module of the previous dotted name; in "checked by", ``test_x.py`` means

@@ -1,4 +1,4 @@
-"""The end-to-end stiffness regressor learns the stiffness inside a condition (issue 10, item 2).
+"""The end-to-end stiffness regressor learns the stiffness inside a condition (DESIGN 3.2).
 
 Tiny run (a few hundred 12x12 frames whose brightness tracks the stiffness, as in
 tests/test_attacks.py): the full regressor is trained for real by the command in the README;

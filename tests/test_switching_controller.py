@@ -1,4 +1,4 @@
-"""The switching, speed-scheduled L1 controller (issue 7, item 6) and the speed-varying plants."""
+"""The switching, speed-scheduled L1 controller (DESIGN 5.6) and the speed-varying plants."""
 
 
 import numpy as np

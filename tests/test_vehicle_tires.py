@@ -1,4 +1,4 @@
-"""A vehicle file may scale the conditions table's per-tire stiffness (issue 9, item 6)."""
+"""A vehicle file may scale the conditions table's per-tire stiffness (DESIGN 2.1)."""
 
 import dataclasses
 

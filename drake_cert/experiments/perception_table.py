@@ -1,4 +1,4 @@
-"""The perception table (issue 10): what the run-time stiffness intervals promise, measured.
+"""The perception table: what the run-time stiffness intervals promise, measured.
 
 For each preset, on the SAME test frames (round-robin over labels), at the same budgets:
 

@@ -277,7 +277,7 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
                                seed: int = 0, config: TrainConfig | None = None,
                                init: SmallResNet | None = None, progress: bool = False,
                                description: str = "train regressor") -> tuple[SmallResNet, dict]:
-    """A stiffness regressor trained end to end under Gaussian noise (issue 10, item 2).
+    """A stiffness regressor trained end to end under Gaussian noise (DESIGN 3.2).
 
     The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
     whole network learns the stiffness, which the generator ties to the rendering intensity
