@@ -135,14 +135,14 @@ def test_a_condition_stretch_shorter_than_the_assumed_shortest_is_refused(design
     text = _shipped_text("dry_to_snow")
     patch = "  - {length_m: 12.0, curvature_per_m: 0.0, condition: snow}\n"
     rain = "  - {length_m: 30.0, curvature_per_m: 0.0, condition: rain}"
-    assert rain in text  # 12 m of snow between sunny and rain: two boundaries in 30 m
+    assert rain in text  # 12 m of snow between sunny and rain: two boundaries in 60 m
     err = _refusal(designs, tmp_path, capsys, text.replace(rain, patch + rain))
-    assert "route segment 3 (snow, 12 m" in err and "min_condition_length_m = 30 m" in err
+    assert "route segment 3 (snow, 12 m" in err and "min_condition_length_m = 60 m" in err
 
 
 def test_an_assumed_shortest_stretch_within_the_road_between_two_frames_is_refused(
         designs, tmp_path, capsys):
-    text = _shipped_text("dry_to_snow").replace("\nmin_condition_length_m: 30.0",
+    text = _shipped_text("dry_to_snow").replace("\nmin_condition_length_m: 60.0",
                                                 "\nmin_condition_length_m: 3.0")
     err = _refusal(designs, tmp_path, capsys, text)
     assert "min_condition_length_m = 3 m" in err and "5 Hz" in err and "3.87 m" in err
