@@ -7,7 +7,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow bench lint clean
+.PHONY: run test test-slow bench lint notebooks clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
@@ -17,7 +17,7 @@ $(STAMP): pyproject.toml constraints.txt
 
 run: $(STAMP)
 	$(BIN)/drake-cert synthesize --out results/designs.yaml
-	$(BIN)/drake-cert verify results/designs.yaml
+	$(BIN)/drake-cert verify results/designs.yaml --complete
 	$(BIN)/drake-cert drive --scenario dry_to_snow --compare --attack sa --designs results/designs.yaml \
 		--plot results/drive.png --meshcat results/drive.html --out results/drive.csv
 
@@ -29,6 +29,9 @@ test-slow: $(STAMP)
 
 bench: $(STAMP)
 	for f in benchmarks/bench_*.py; do $(BIN)/python $$f || exit 1; done
+
+notebooks: $(STAMP)
+	$(BIN)/python notebooks/execute.py
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -156,3 +156,12 @@ def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supp
     text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 60.0", "  look_ahead_m: 40.0")
     err = _refusal(designs, tmp_path, capsys, text)
     assert "supports at most 16.46 m/s" in err and "19.36 m/s" in err and "55.4 m" in err
+
+
+def test_drive_help_names_every_shipped_scenario(capsys):
+    from systems.scenario import SHIPPED_SCENARIOS
+
+    with pytest.raises(SystemExit):
+        main(["drive", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert all(name in text for name in SHIPPED_SCENARIOS), text

@@ -21,7 +21,8 @@ ATTACKS = ("none", "sa", "ea", "nan", "misshaped")
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="dry_to_snow", metavar="NAME|FILE",
                         help="shipped scenario name (dry_to_snow, rain_route, road_surface, "
-                             "weather_change_in_curve) or a scenario YAML file")
+                             "sunny_into_snow, weather_change_in_curve) or a scenario YAML "
+                             "file")
     parser.add_argument("--pipeline", choices=PIPELINES, default=None,
                         help="certified (smoothed g, certificate) or base (raw f); default: "
                              "the scenario's")
