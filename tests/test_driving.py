@@ -190,7 +190,9 @@ def test_every_shipped_scenario_keeps_the_design_in_force_on_the_truth(setup, na
 @pytest.mark.slow
 def test_on_the_snow_route_the_certified_car_keeps_its_speed_under_attack(setup):
     # dry_to_snow as shipped: under SA the certified car keeps >= 80% of its own unattacked
-    # mean speed, unattacked >= 90% of the base car's; the base car leaves its lane under SA.
+    # mean speed, unattacked >= 90% of the base car's; the base car leaves its lane under SA
+    # in most drives (whether a frame the attack did not fool lies just before the snow curve
+    # is chance: measured, seeds 2-9 left, the shipped seed 1 did not; here: seeds 1-5, >= 3).
     runs = {}
     for pipeline, attack in (("certified", "none"), ("certified", "sa"), ("base", "none"),
                              ("base", "sa")):
@@ -200,7 +202,12 @@ def test_on_the_snow_route_the_certified_car_keeps_its_speed_under_attack(setup)
     speed = {k: v["mean_speed_mps"] for k, v in runs.items()}
     assert speed["certified", "sa"] >= 0.8 * speed["certified", "none"], speed
     assert speed["certified", "none"] >= 0.9 * speed["base", "none"], speed
-    assert runs["base", "sa"]["left_lane"]
+    shipped = load_scenario("dry_to_snow")
+    left = [runs["base", "sa"]["left_lane"]]
+    for seed in range(shipped.seed + 1, shipped.seed + 5):
+        scenario = with_overrides(shipped, pipeline="base", attack="sa", seed=seed)
+        left.append(drive_scenario(scenario, **setup).summary["left_lane"])
+    assert sum(left) >= 3, left
 
 
 def hand_tape(truth, lo, hi, speed, design_speed, dt=0.05):
