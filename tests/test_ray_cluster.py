@@ -78,7 +78,7 @@ class Head:
 def loopback_head():
     """A Ray head on 127.0.0.1 that requires its own token (the module's tests share it),
     started in the background: :meth:`Head.ready` waits for it."""
-    pytest.importorskip("ray")
+    pytest.importorskip("ray", reason="Ray is the optional `ray` extra (`make test` installs it)")
     if not ray_command() or not Path("/proc").is_dir():
         pytest.skip("needs the `ray` command and /proc")
     # A short temp dir: Ray's unix sockets live under it (at most 107 bytes a path).
