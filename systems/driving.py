@@ -56,6 +56,7 @@ from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import LogVectorOutput, Saturation
 
+from drake_cert.certification.alpha_spending import AlphaSpending, planned_decisions
 from drake_cert.certification.backends import resolve_backend
 from drake_cert.certification.intervals import candidate_ranges
 from drake_cert.certification.sampler import resolve_precision
@@ -286,13 +287,44 @@ def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
             "or raise camera.rate_hz")
 
 
-def check_perception_budget(scenario: Scenario, conditions: ConditionsTable) -> None:
+def alpha_spending(scenario: Scenario, table: list[ControllerDesign]) -> AlphaSpending | None:
+    """How the drive spends ``perception.alpha`` (DESIGN 6.2): with ``alpha_scope: drive``, an
+    :class:`AlphaSpending` of that total over the ticks the route and the lead-in take at the
+    slowest moving design speed (at most the ticks of ``t_final_s``); None with
+    ``alpha_scope: decision`` (``alpha`` per decision) or for the base pipeline."""
+    p = scenario.perception
+    if p.alpha_scope != "drive" or p.pipeline != "certified":
+        return None
+    moving = [v for v in _speeds(table) if v >= scenario.motion.stop_speed_mps]
+    planned = planned_decisions(scenario.route_length_m + scenario.camera.look_ahead_m,
+                                min(moving), scenario.camera.rate_hz, scenario.t_final_s)
+    return AlphaSpending(p.alpha, planned)
+
+
+def certificate_failure_bound(scenario: Scenario, spending: AlphaSpending | None,
+                              ticks: int) -> float:
+    """The union bound on the probability that some certificate of a drive of ``ticks``
+    decisions failed: the alpha spent (drive scope) or ``ticks * alpha`` (decision scope,
+    capped at 1); 0 for the base pipeline, which certifies nothing."""
+    if scenario.perception.pipeline != "certified":
+        return 0.0
+    if spending is not None:
+        return spending.spent(ticks)
+    return min(1.0, ticks * scenario.perception.alpha)
+
+
+def check_perception_budget(scenario: Scenario, conditions: ConditionsTable,
+                            table: list[ControllerDesign] | None = None) -> None:
     """:class:`ConfigError` when the scenario's sequential decisions could never certify its
-    eps with its n (checked before any model is loaded or any drive starts)."""
+    eps with its n at the alpha of a decision (with ``alpha_scope: drive``, the planned ticks'
+    share of the drive's alpha; needs the design ``table``), checked before any model is
+    loaded or any drive starts."""
     p = scenario.perception
     if p.pipeline == "certified" and p.resolved_decision == "sequential":
         labels = list(conditions.preset(p.preset).labels)
-        check_decision_budget(p.n, p.alpha, p.eps, p.sigma,
+        spending = alpha_spending(scenario, table) if table is not None else None
+        alpha = spending.planned_alpha if spending is not None else p.alpha
+        check_decision_budget(p.n, alpha, p.eps, p.sigma,
                               candidate_ranges(conditions, p.preset, labels))
 
 
@@ -386,7 +418,8 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
         offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
         frame_size=cam.frame_size, decision=p.resolved_decision,
-        ranges=candidate_ranges(conditions, p.preset, labels)))
+        ranges=candidate_ranges(conditions, p.preset, labels),
+        alpha_spending=alpha_spending(scenario, table)))
     interval = add("certified_interval", CertifiedInterval(
         table, conditions, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
         regression_beta=beta, conformal=conformal,
@@ -537,7 +570,8 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
                               simulated_s=context.get_time(), wall_s=wall,
                               ending=ending["reason"], seed_source=built.seed_source,
                               envelope_index=built.systems["interval"].envelope_index,
-                              lead_in_m=built.lead_in_m)
+                              lead_in_m=built.lead_in_m,
+                              alpha_spending=built.systems["perception"].alpha_spending)
     if built.switching is not None:
         from synthesis.switching import drive_switching_report
 
@@ -620,7 +654,7 @@ def time_left_lane(tape: DriveTape) -> float | None:
 def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
                     simulated_s: float, wall_s: float, ending: str,
                     seed_source: str = "scenario", envelope_index: int | None = None,
-                    lead_in_m: float = 0.0) -> dict:
+                    lead_in_m: float = 0.0, alpha_spending: AlphaSpending | None = None) -> dict:
     """The ``drive --json`` object (DESIGN 7 metrics of one drive).
 
     ``mean_speed_mps`` is over the route (arc length >= 0, from the first point a frame
@@ -628,6 +662,10 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     decision) counts in every other figure. ``envelope_fraction``: share of camera ticks whose
     decision is the envelope (an abstention, a bad frame); ``envelope_time_fraction``: share
     of simulated time the envelope design is in force on the route.
+    ``certificate_failure_bound``: the union bound on the probability that some certificate of
+    the drive failed (:func:`certificate_failure_bound`, over the at most
+    ``ceil(simulated_s * rate_hz)`` decisions taken); where none failed, the design in force
+    held the stiffness under the car up to the standing assumption (DESIGN 6.2).
     """
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
@@ -664,6 +702,9 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "interval_covers_true_fraction": float(np.mean(covers)) if len(covers) else None,
         "design_covers_true_fraction": design_covers,
         "time_unprotected_s": unprotected,
+        "alpha_scope": scenario.perception.alpha_scope,
+        "certificate_failure_bound": certificate_failure_bound(
+            scenario, alpha_spending, math.ceil(simulated_s * scenario.camera.rate_hz - 1e-9)),
         "attack_within_certified_budget": (not attacked
                                            or scenario.attack.eps <= scenario.perception.eps),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,

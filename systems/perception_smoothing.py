@@ -33,6 +33,7 @@ from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 from scipy.stats import norm
 
+from drake_cert.certification.alpha_spending import AlphaSpending
 from drake_cert.certification.classifier import (
     ClassCertificate,
     SequentialDecision,
@@ -118,6 +119,10 @@ class PerceptionSmoothing(LeafSystem):
         ranges: sequential only: the candidate label ranges, most preferred first
             (:func:`drake_cert.certification.intervals.candidate_ranges`); n0 > 0 keeps those
             holding the selection's top label; None: the top label alone.
+        alpha_spending: an :class:`~drake_cert.certification.alpha_spending.AlphaSpending`:
+            the decision of camera tick k is taken at ``alpha_spending.alpha(k)`` (every
+            decision of the drive holds at once with probability >= 1 - its total) instead of
+            ``alpha`` each; None: ``alpha`` per decision.
     """
 
     def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
@@ -126,7 +131,7 @@ class PerceptionSmoothing(LeafSystem):
                  offset_s: float | None = None, seed: int = 0,
                  label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
                  frame_size: int = 64, compile: bool = False, decision: str = "fixed",
-                 ranges=None):
+                 ranges=None, alpha_spending: AlphaSpending | None = None):
         super().__init__()
         if mode not in MODES:
             raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
@@ -141,7 +146,10 @@ class PerceptionSmoothing(LeafSystem):
         self.mode, self.task = mode, task
         self.decision = decision if task == "classify" else "fixed"
         self.ranges = ranges
-        self.n0, self.n, self.alpha = int(n0), int(n), float(alpha)
+        self.n0, self.n = int(n0), int(n)
+        self.alpha_spending = alpha_spending
+        # the largest alpha a decision gets (the checks below: n must reach it)
+        self.alpha = float(alpha) if alpha_spending is None else alpha_spending.planned_alpha
         self.batch_size = int(batch_size)
         self.seed = int(seed)
         self.eps = float(eps)
@@ -198,6 +206,7 @@ class PerceptionSmoothing(LeafSystem):
         if problem:
             return dataclasses.replace(base, frame_ok=False, error=problem)
         x = frame.image.float()
+        alpha = self.alpha_of(frame.tick)
         seed = child_seed(self.seed, Purpose.ESTIMATION, frame.tick)
         selection_seed = child_seed(self.seed, Purpose.SELECTION, frame.tick)
         try:
@@ -211,11 +220,11 @@ class PerceptionSmoothing(LeafSystem):
                     if self.n0 and ranges is not None:  # those holding the selected label
                         ranges = _holding(ranges)
                     d = self._smooth.decide(
-                        x, self.eps, self.alpha, self.n, self.batch_size, ranges,
+                        x, self.eps, alpha, self.n, self.batch_size, ranges,
                         seed=seed, selection_n=self.n0, selection_seed=selection_seed)
                     return dataclasses.replace(base, base_label=base_label, decision=d,
                                                samples=d.samples)
-                cert = self._smooth.certify(x, self.n0, self.n, self.alpha, self.batch_size,
+                cert = self._smooth.certify(x, self.n0, self.n, alpha, self.batch_size,
                                             seed=seed, selection_seed=selection_seed)
                 return dataclasses.replace(base, base_label=base_label, certificate=cert,
                                            samples=self.n0 + self.n)
@@ -225,11 +234,17 @@ class PerceptionSmoothing(LeafSystem):
                 if not math.isfinite(value):
                     raise CertificationError("regressor returned a non-finite stiffness")
                 return dataclasses.replace(base, base_value_n_per_rad=value)
-            median, lower, upper = self._smooth.certify_interval(x, self.eps, self.n, self.alpha,
+            median, lower, upper = self._smooth.certify_interval(x, self.eps, self.n, alpha,
                                                                  self.batch_size, seed=seed)
             return dataclasses.replace(base, regression=(median, lower, upper), samples=self.n)
         except CertificationError as e:
             return dataclasses.replace(base, frame_ok=False, error=str(e))
+
+    def alpha_of(self, tick: int) -> float:
+        """The failure probability of the decision on camera tick ``tick``."""
+        if self.alpha_spending is None:
+            return self.alpha
+        return self.alpha_spending.alpha(max(0, int(tick)))
 
     def _update(self, context, state) -> EventStatus:
         result = self.perceive(self._in.Eval(context), context.get_time())

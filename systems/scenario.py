@@ -29,6 +29,7 @@ SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "sunny_into_sn
                      "weather_change_in_curve")
 PIPELINES = ("certified", "base")
 TASKS = ("classify", "regress")
+ALPHA_SCOPES = ("decision", "drive")  # what perception.alpha bounds: each decision, or all
 ATTACK_KINDS = ("none", "sa", "ea", "nan", "misshaped")
 ATTACK_TARGETS = ("base", "smoothed")
 LAWS = ("piecewise_constant", "gradient")
@@ -77,7 +78,8 @@ class PerceptionSettings:
     eps: float = 0.5  # L2 budget (pixel units) the run-time interval is certified against
     n0: int = 100  # selection samples per certificate (sequential: 0 = test every range at once)
     n: int = 1000  # estimation samples per certificate
-    alpha: float = 0.001  # failure probability of each certificate
+    alpha: float = 0.001  # failure probability of each decision, or of the whole drive
+    alpha_scope: str = "decision"  # "decision": alpha each; "drive": alpha for all together
     batch_size: int = 500  # noisy copies per model evaluation
     pipeline: str = "certified"  # "certified" (smoothed g) or "base" (raw f, non-robust)
     calibration_frames_per_class: int = 20  # regression: conformal calibration frames per label
@@ -103,6 +105,7 @@ class PerceptionSettings:
         _one_of(self.task, TASKS, "perception.task", where)
         _one_of(self.precision, ("auto", "fp32", "bf16"), "perception.precision", where)
         _one_of(self.interval, ("safe_set", "conformal"), "perception.interval", where)
+        _one_of(self.alpha_scope, ALPHA_SCOPES, "perception.alpha_scope", where)
         _one_of(self.decision, ("auto", "sequential", "fixed"), "perception.decision", where)
         _one_of(self.backend, ("auto", "torch", "onnxruntime"), "perception.backend", where)
         _one_of(self.quantization, ("none", "int8"), "perception.quantization", where)

@@ -165,7 +165,7 @@ def run(args) -> int:
     check_route_is_seen(first, table)
     check_look_ahead(first, table)
     for choice in choices:
-        check_perception_budget(_scenario_for(**choice), common["conditions"])
+        check_perception_budget(_scenario_for(**choice), common["conditions"], table)
     if len(choices) == 1:
         results = [_drive_with_bar(choices[0], common, position=0)]
     else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
@@ -230,7 +230,8 @@ def format_summaries(summaries: list[dict]) -> str:
             ("mean_speed_mps", "{:.2f}"), ("min_speed_mps", "{:.2f}"),
             ("distance_m", "{:.1f}"), ("interval_covers_true_fraction", "{:.3f}"),
             ("design_covers_true_fraction", "{:.3f}"), ("time_unprotected_s", "{:.2f}"),
-            ("envelope_fraction", "{:.3f}"), ("design_switches", "{}"),
+            ("envelope_fraction", "{:.3f}"), ("envelope_time_fraction", "{:.3f}"),
+            ("certificate_failure_bound", "{:.4f}"), ("design_switches", "{}"),
             ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
             ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
             ("backend", "{}"))

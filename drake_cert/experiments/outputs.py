@@ -40,13 +40,11 @@ def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], co
 
     out = Path(out_dir)
     checked = claims.claims_document(rows, config.eps)
-    interval = getattr(config, "interval", "safe_set")
     written = [
         atomic_write_text(out / "results.csv", tables.to_csv(summary)),
         atomic_write_text(out / "frames.csv", tables.to_csv(rows, FRAME_COLUMNS)),
         atomic_write_text(out / "tables.md", tables.markdown(summary, config, conditions)),
-        atomic_write_text(out / "claims.md", claims.document_markdown(checked, config.eps,
-                                                                      interval)),
+        atomic_write_text(out / "claims.md", claims.document_markdown(checked, config.eps)),
         atomic_write_text(out / "claims.json", json.dumps(json_safe(checked), indent=1) + "\n"),
         atomic_write_text(out / "meta.json", json.dumps(
             dict(meta, config=dataclasses.asdict(config)), indent=2) + "\n"),
