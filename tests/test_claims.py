@@ -101,3 +101,30 @@ def test_claims_lead_with_the_unconditioned_headline_and_keep_the_split_as_a_dia
     assert text.startswith("**Left the lane, not conditioned on the truth**")
     assert text.index("Diagnostic: split") < text.index("**1. f is unstable under SA**")
     assert "g (robust conformal interval)" in text  # the run's interval names g
+
+
+def with_conformal(rows, *, left=False, ea_v=9.0):
+    """g's rows again as g_conformal (the same certificates, the robust conformal interval)."""
+    out = []
+    for r in rows:
+        if r["pipeline"] == "g":
+            c = dict(r, pipeline="g_conformal")
+            if r["attack"] == "sa":
+                c["left_lane"] = left
+            if r["attack"] == "ea":
+                c["velocity_mps"] = ea_v
+            out.append(c)
+    return rows + out
+
+
+def test_claims_three_and_four_are_checked_for_the_conformal_interval_too():
+    rows = frame(0) + frame(1, f_left=False)
+    holds = check_claims(with_conformal(rows), 0.25)["p"]["holds"]
+    assert holds["g_conformal_zero_instability_inside_certificates"] is True
+    assert holds["g_conformal_keeps_80pct_speed_under_ea"] is True
+    broken = check_claims(with_conformal(rows, left=True, ea_v=6.0), 0.25)["p"]["holds"]
+    assert broken["g_conformal_zero_instability_inside_certificates"] is False
+    assert broken["g_conformal_keeps_80pct_speed_under_ea"] is False
+    assert broken["g_zero_instability_inside_certificates"] is True  # g itself unchanged
+    assert "g_conformal_zero_instability_inside_certificates" not in check_claims(
+        rows, 0.25)["p"]["holds"]  # a run without the pipeline has no such verdict

@@ -133,6 +133,12 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                 g_zero_instability_where_the_certified_range_holds_the_true_label=not any(
                     r["left_lane"] for r in holds_truth),
                 g_keeps_80pct_speed_under_ea=all(v["kept"] >= SPEED_KEPT for v in kept.values()),
+                # claims 3 and 4 for the same certificates read by the robust conformal interval
+                **({} if not conformal_kept else dict(
+                    g_conformal_zero_instability_inside_certificates=not any(
+                        r["left_lane"] for r in conformal),
+                    g_conformal_keeps_80pct_speed_under_ea=all(
+                        v["kept"] >= SPEED_KEPT for v in conformal_kept.values()))),
             ))
     return out
 
