@@ -11,6 +11,8 @@ import math
 import numpy as np
 import pytest
 import torch
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.stats import binom, norm
 
 from drake_cert.certification.classifier import SmoothedClassifier, sequential_radius
@@ -162,6 +164,35 @@ def test_confidence_sequence_ends_are_exact_where_closed_form():
 def test_sequential_radius_is_cohens_for_a_single_label():
     assert sequential_radius(0.9, 0.9, 0.5) == pytest.approx(0.5 * norm.ppf(0.9))
     assert sequential_radius(0.4, 0.4, 0.5) == 0.0
+
+
+@given(st.lists(st.floats(0.0, 1.0), min_size=2, max_size=6),
+       st.lists(st.booleans(), min_size=6, max_size=6))
+def test_a_range_holding_more_than_k_over_k_plus_1_of_the_mass_holds_the_best_label(weights,
+                                                                                   chosen):
+    """The premise of the mass radius: wherever a set T of k labels keeps a mass above
+    k/(k+1), the best label lies in T. (Within the radius T keeps it, by the 1/sigma-Lipschitz
+    PhiInv of the smoothed indicator of T.)"""
+    q = np.asarray(weights) + 1e-9
+    q = q / q.sum()
+    members = [i for i in range(len(q)) if chosen[i]]
+    k = len(members)
+    if k and q[members].sum() > k / (k + 1):
+        assert int(np.argmax(q)) in members
+
+
+def test_a_range_whose_mass_is_split_between_two_labels_gets_the_mass_radius():
+    # p(sunny) >= 0.52, p({sunny, rain}) >= 0.97 at sigma = 1: the label radius is 0.96, the
+    # mass radius sigma (PhiInv(0.97) - PhiInv(2/3)) = 1.45: certified at eps = 1
+    label = 0.5 * (norm.ppf(0.52) + norm.ppf(0.97))
+    mass = norm.ppf(0.97) - norm.ppf(2 / 3)
+    assert sequential_radius(0.52, 0.97, 1.0, size=2) == pytest.approx(max(label, mass))
+    assert label < 1.0 < mass
+    # one dominant label: the label radius is the larger, and is kept
+    assert sequential_radius(0.96, 0.97, 1.0, size=2) == pytest.approx(
+        0.5 * (norm.ppf(0.96) + norm.ppf(0.97)))
+    # one label: the two radii coincide (Cohen's)
+    assert sequential_radius(0.9, 0.9, 1.0, size=1) == pytest.approx(norm.ppf(0.9))
 
 
 def test_looks_are_fixed_in_advance_and_split_alpha_over_the_certifying_ones():

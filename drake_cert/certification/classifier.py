@@ -97,14 +97,25 @@ class SequentialDecision:
         return not self.certified
 
 
-def sequential_radius(p_low_top: float, p_low_range: float, sigma: float) -> float:
-    """Certified radius of a range T from lower bounds on its top label's probability and on
-    T's mass: ``sigma/2 * (PhiInv(p_low_top) + PhiInv(p_low_range))``, 0 when not positive.
+def sequential_radius(p_low_top: float, p_low_range: float, sigma: float,
+                      size: int = 1) -> float:
+    """Certified radius of a range T of ``size`` labels from lower bounds on the probability
+    of a label a in T and on T's mass: the larger of two radii, each sufficient for
+    ``g(z) in T``, 0 when neither is positive.
 
-    This is :func:`safe_set_radius` with the outside term bounded by ``1 - P(T)``:
-    ``PhiInv(1 - P(T)) = -PhiInv(P(T))``; for T = {a} it is Cohen's ``sigma PhiInv(p_low)``.
+    * label radius ``sigma/2 * (PhiInv(p_low_top) + PhiInv(p_low_range))``: :func:`safe_set_radius`
+      with the outside term bounded by ``1 - P(T)`` (``PhiInv(1 - P(T)) = -PhiInv(P(T))``);
+      for T = {a} it is Cohen's ``sigma PhiInv(p_low)``;
+    * mass radius ``sigma * (PhiInv(p_low_range) - PhiInv(k / (k + 1)))`` for ``k = size``:
+      ``PhiInv(P(f(z + noise) in T))`` is 1/sigma-Lipschitz in z (as for one label), so within
+      it T keeps a mass above k/(k+1); then its best label has more than 1/(k+1) and every label
+      outside at most 1 - mass < 1/(k+1), so g(z) is in T. It needs no dominant label: it
+      certifies a range whose mass is split between two labels (a frame near a condition
+      boundary) where the label radius cannot. For k = 1 the two coincide.
     """
     r = 0.5 * sigma * (float(ndtri(p_low_top)) + float(ndtri(p_low_range)))  # ndtri: PhiInv
+    if size > 1:
+        r = max(r, sigma * (float(ndtri(p_low_range)) - float(ndtri(size / (size + 1.0)))))
     return r if r > 0 else 0.0
 
 
@@ -229,9 +240,10 @@ class SmoothedClassifier(SmoothedModel):
 
         Estimation samples are examined at looks fixed in advance (:func:`look_plan`:
         Clopper-Pearson bounds at geometric looks with alpha split over the looks, or a
-        beta-mixture confidence sequence). At each look a range T gets
-        ``R_T = max_a sigma/2 (PhiInv(L_a) + PhiInv(L_T))`` over its tested labels a
-        (:func:`sequential_radius`) from lower bounds on a's probability and on T's mass.
+        beta-mixture confidence sequence). At each look a range T of k labels gets
+        ``R_T = max(max_a sigma/2 (PhiInv(L_a) + PhiInv(L_T)), sigma (PhiInv(L_T) -
+        PhiInv(k/(k+1))))`` over its tested labels a (:func:`sequential_radius`) from lower
+        bounds on a's probability and on T's mass.
         Alpha is split over the m tested quantities (labels and multi-label masses) and the
         looks, so every bound holds at every look at once with probability at least
         ``1 - alpha``, and stopping at any look keeps the guarantee (re-checking a fixed-n
@@ -295,12 +307,13 @@ class SmoothedClassifier(SmoothedModel):
                     low_t, up_t = bounds[c]
                     for a in (t for t in c if t in singles):
                         low_a, up_a = bounds[(a,)]
-                        radius = sequential_radius(low_a, low_t, self.sigma)
+                        radius = sequential_radius(low_a, low_t, self.sigma, len(c))
                         if radius > eps and (best is None or (i, -radius) < (best[0],
                                                                               -best[1])):
                             best = (i, radius, a, low_a, low_t)
                         reachable = sequential_radius(plan.reachable_low(up_a),
-                                                      plan.reachable_low(up_t), self.sigma)
+                                                      plan.reachable_low(up_t), self.sigma,
+                                                      len(c))
                         if reachable > eps and live is None:
                             live = i
                 if live is None:
