@@ -296,8 +296,9 @@ def alpha_spending(scenario: Scenario, table: list[ControllerDesign]) -> AlphaSp
     if p.alpha_scope != "drive" or p.pipeline != "certified":
         return None
     moving = [v for v in _speeds(table) if v >= scenario.motion.stop_speed_mps]
+    slowest = min(moving, default=scenario.motion.stop_speed_mps)  # every design stops: stop speed
     planned = planned_decisions(scenario.route_length_m + scenario.camera.look_ahead_m,
-                                min(moving), scenario.camera.rate_hz, scenario.t_final_s)
+                                slowest, scenario.camera.rate_hz, scenario.t_final_s)
     return AlphaSpending(p.alpha, planned)
 
 
