@@ -420,7 +420,10 @@ def test_sampler_batches_reuse_freed_memory_instead_of_faulting_it_back_in():
     # glibc's defaults trim each batch's freed activations and fault them back in: 191,000
     # minor faults over these 4000 samples with the shipped model (measured); kept, 0. The
     # model runs in fp32, which every CPU runs natively: with the bf16 model an AVX2 CPU
-    # (bf16 emulated) saw 720,048 faults here, so the figure depended on the CPU.
+    # (bf16 emulated) saw 720,048 faults here, so the figure depended on the CPU. Kept memory
+    # is not always zero: when the allocator places one 12 MB batch buffer anew, its 3,000
+    # pages fault in once (0, 3,000 and 6,000 seen on the same machine), a bound far below the
+    # untuned 191,000.
     out = subprocess.run([sys.executable, "-c", MEASURE_FAULTS], capture_output=True, text=True,
                          check=True)
-    assert int(out.stdout.split()[-1]) < 5000
+    assert int(out.stdout.split()[-1]) < 20_000
