@@ -133,6 +133,11 @@ class CertifiedInterval(LeafSystem):
             clean frame; DESIGN 3) instead of the safe-set interval; the design is that of its
             contiguous label range.
         dwell_time_s: least time between design switches (s).
+        stiffness_scale: the vehicle's ``tire_stiffness_scale`` (dimensionless): a regressor
+            estimates the road's stiffness for the conditions table's reference tire, so its
+            values (and beta) are multiplied by it before a design is chosen; ``conditions``
+            must then be the table as scaled for this vehicle (the designs' intervals).
+            Classification reads label ranges, which need no scaling.
         rate_hz, offset_s: the update's rate and offset (default half a period).
         label_names: the classifier's label names (default: the preset's).
     """
@@ -140,7 +145,7 @@ class CertifiedInterval(LeafSystem):
     def __init__(self, designs: Sequence[ControllerDesign], conditions: ConditionsTable,
                  preset: str, *, eps: float, mode: str = "certified", task: str = "classify",
                  regression_beta: float = 0.0, conformal=None, dwell_time_s: float = 0.3,
-                 rate_hz: float = 10.0,
+                 stiffness_scale: float = 1.0, rate_hz: float = 10.0,
                  offset_s: float | None = None, label_names: Sequence[str] | None = None):
         super().__init__()
         if mode not in ("certified", "base") or task not in ("classify", "regress"):
@@ -152,6 +157,9 @@ class CertifiedInterval(LeafSystem):
             raise ConfigError(f"dwell_time_s = {dwell_time_s!r} must be a finite number >= 0")
         if not regression_beta >= 0:
             raise ConfigError(f"regression_beta = {regression_beta!r} must be >= 0")
+        if not (math.isfinite(stiffness_scale) and stiffness_scale > 0):
+            raise ConfigError(f"stiffness_scale = {stiffness_scale!r} must be a positive number")
+        self.stiffness_scale = float(stiffness_scale)
         self.designs = list(designs)
         self.conditions, self.preset = conditions, preset
         self.eps, self.mode, self.task = float(eps), mode, task
@@ -247,13 +255,15 @@ class CertifiedInterval(LeafSystem):
             v = p.base_value_n_per_rad
             if v is None or not math.isfinite(v):
                 return self.envelope_decision(p)
+            v *= self.stiffness_scale  # the reference tire's stiffness -> this vehicle's
             index = self._narrowest_holding((v, v))
             return (self.envelope_decision(p) if index is None
                     else self._decision(p, index, "base", 0.0))
         if p.regression is None:
             return self.envelope_decision(p)
         _, lower, upper = p.regression
-        interval = runtime_interval(lower, upper, self.beta, self.envelope)
+        k = self.stiffness_scale  # the reference tire's stiffness -> this vehicle's
+        interval = runtime_interval(k * lower, k * upper, k * self.beta, self.envelope)
         if interval == tuple(float(x) for x in self.envelope):
             return self.envelope_decision(p)
         index = self._narrowest_holding(interval)

@@ -368,10 +368,15 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         scenario, seed_source = dataclasses.replace(scenario, seed=entropy_seed()), "os-entropy"
     p, cam, att = scenario.perception, scenario.camera, scenario.attack
     certified = p.pipeline == "certified"
-    table, envelope = moving_envelope(designs, conditions, p.preset)
+    # The road's stiffness as this vehicle's tires feel it: the conditions table's intervals
+    # times vehicle.tire_stiffness_scale (the designs were synthesized on these). The truth
+    # under the car, the labels' hulls and the designs' intervals use it; the perception
+    # models (trained on the table's reference stiffness) and their calibration keep the table.
+    tires = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
+    table, envelope = moving_envelope(designs, tires, p.preset)
     check_route_is_seen(scenario, table)
     check_look_ahead(scenario, table)
-    route = Route.build(scenario.route, conditions, p.preset, scenario.seed,
+    route = Route.build(scenario.route, tires, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma
     # The attack and the certificate see the same model as evaluated (fp32 or bf16; ONNX
@@ -394,11 +399,11 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
         initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
         rate_hz=cam.rate_hz, offset_s=0.75 * period,
-        join=join_design_indices(table, conditions, p.preset), design_speeds_mps=_speeds(table),
+        join=join_design_indices(table, tires, p.preset), design_speeds_mps=_speeds(table),
         frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
         # the certified pipeline combines its certified decisions over the shortest stretch of
         # one condition; the base pipeline's raw predictions each stand alone (the baseline)
-        meet=meet_design_indices(table, conditions, p.preset) if certified else None,
+        meet=meet_design_indices(table, tires, p.preset) if certified else None,
         window_m=scenario.min_condition_length_m if certified else 0.0,
         envelope_index=envelope,
         initial_arc_length_m=-cam.look_ahead_m))
@@ -406,7 +411,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     preview = ctl.preview_window_s > 0
     road = add("route", RouteSource(route, preview_ahead_s=ctl.preview_ahead_s,
                                     preview_window_s=ctl.preview_window_s))
-    camera = add("camera", CameraSource(route, conditions, p.preset, rate_hz=cam.rate_hz,
+    camera = add("camera", CameraSource(route, tires, p.preset, rate_hz=cam.rate_hz,
                                         look_ahead_m=cam.look_ahead_m,
                                         frame_size=cam.frame_size, seed=scenario.seed,
                                         frames_dir=cam.frames_dir or None))
@@ -419,11 +424,12 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
         offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
         frame_size=cam.frame_size, decision=p.resolved_decision,
-        ranges=candidate_ranges(conditions, p.preset, labels),
+        ranges=candidate_ranges(tires, p.preset, labels),
         alpha_spending=alpha_spending(scenario, table)))
     interval = add("certified_interval", CertifiedInterval(
-        table, conditions, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
+        table, tires, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
         regression_beta=beta, conformal=conformal,
+        stiffness_scale=vehicle.tire_stiffness_scale,
         dwell_time_s=scenario.controller.dwell_time_s,
         rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
     controller = add("switching_l1_controller", SwitchingL1Controller(

@@ -40,3 +40,60 @@ def test_designs_are_synthesized_and_verified_on_the_scaled_intervals():
     unscaled = DesignTable([design], dataclasses.replace(SUV, tire_stiffness_scale=1.0),
                            SETTINGS, provenance(seed=None, command=["pytest"]), conditions)
     assert not verify_design_table(unscaled).ok
+
+
+@pytest.fixture(scope="module")
+def suv_carla_designs():
+    """The SUV's designs for the carla-like label ranges (synthesized on scaled intervals;
+    its envelope has a safe speed there, not in robotcar-like's, whose snow it cannot take
+    with sunny's gains)."""
+    conditions = dataclasses.replace(CONDITIONS, presets=[CONDITIONS.preset("carla-like")])
+    return conditions, synthesize_table(SUV, conditions, SETTINGS)
+
+
+def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
+    """The truth under the car is the road's stiffness as the SUV's tires feel it (scaled),
+    the same stiffness its designs were synthesized for; the camera shows the same road."""
+    from systems.driving import build_certified_driving_diagram
+    from systems.route import Route
+    from systems.scenario import load_scenario
+
+    conditions, designs = suv_carla_designs
+    scenario = load_scenario("rain_route")
+    scenario = dataclasses.replace(scenario, perception=dataclasses.replace(
+        scenario.perception, pipeline="base"))
+    built = build_certified_driving_diagram(scenario, vehicle=SUV, settings=SETTINGS,
+                                            conditions=conditions, designs=designs)
+    reference = Route.build(scenario.route, conditions, "carla-like", scenario.seed,
+                            transition_m=scenario.transition_m)
+    scale = SUV.tire_stiffness_scale
+    for seg, ref in zip(built.route.segments, reference.segments, strict=True):
+        lo, hi = conditions.condition(seg.condition).interval
+        assert scale * lo <= seg.stiffness_n_per_rad <= scale * hi
+        assert seg.stiffness_n_per_rad == pytest.approx(scale * ref.stiffness_n_per_rad)
+        assert seg.friction_mu == ref.friction_mu  # friction is the road's, not the tire's
+
+
+def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chosen(
+        suv_carla_designs):
+    """A regressor estimates the reference tire's stiffness: the SUV's is scale times it."""
+    from drake_cert.errors import ConfigError
+    from systems.certified_interval import CertifiedInterval
+    from systems.perception_smoothing import PerceptionResult
+
+    conditions, designs = suv_carla_designs
+    scale = SUV.tire_stiffness_scale
+    tires = conditions.with_stiffness_scale(scale)
+    block = CertifiedInterval(designs, tires, "carla-like", eps=0.0, mode="base",
+                              task="regress", stiffness_scale=scale)
+    wet_lo, _ = conditions.condition("heavy_rain").interval  # reference tire
+    p = dataclasses.replace(PerceptionResult.no_frame("base", "regress"), frame_ok=True,
+                            base_value_n_per_rad=wet_lo)  # below every scaled interval
+    decision = block.request(p)
+    assert decision.status == "base"
+    assert designs[decision.design_index].labels == ["heavy_rain"]
+    unscaled = CertifiedInterval(designs, tires, "carla-like", eps=0.0, mode="base",
+                                 task="regress")
+    assert unscaled.request(p).status == "envelope"  # no SUV design holds the raw value
+    with pytest.raises(ConfigError, match="stiffness_scale"):
+        CertifiedInterval(designs, tires, "carla-like", eps=0.0, stiffness_scale=0.0)
