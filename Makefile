@@ -22,10 +22,10 @@ run: $(STAMP)
 		--plot results/drive.png --meshcat results/drive.html --out results/drive.csv
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -q
+	$(BIN)/python -m pytest -q --durations=15  # the 15 slowest: the suite must stay under 10 min on 2 cores
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -q -m slow
+	$(BIN)/python -m pytest -q -m slow --durations=15
 
 bench: $(STAMP)
 	for f in benchmarks/bench_*.py; do $(BIN)/python $$f || exit 1; done
