@@ -53,7 +53,7 @@ def suv_carla_designs():
 
 def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
     """The truth under the car is the road's stiffness as the SUV's tires feel it (scaled),
-    the same stiffness its designs were synthesized for; the camera shows the same road."""
+    the same stiffness its designs were synthesized for; the road's friction is unchanged."""
     from systems.driving import build_certified_driving_diagram
     from systems.route import Route
     from systems.scenario import load_scenario
