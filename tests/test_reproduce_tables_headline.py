@@ -1,6 +1,7 @@
 """The reproduction's headline: departures counted without conditioning on the truth, with
 intervals that account for departures clustering by frame."""
 
+import csv
 import hashlib
 import json
 from pathlib import Path
@@ -126,49 +127,78 @@ def test_a_missing_or_foreign_file_is_one_readable_error(tmp_path):
         hl.read_frames_csv(tmp_path / "x.csv")
 
 
-# frames.csv of results/paper as a recount found it (safe-set g; companions: conformal g)
-RECOUNTED = {"frames.csv": "ec32320681e45b3a004974f8d26af8f4b933d36ab4208c3407b45d7c26082804",
-             "conformal_carla/frames.csv":
-             "9eb45f89464ea687a268a366bb7678704f20169bc41136460f7bad4109423883",
-             "conformal_rtk/frames.csv":
-             "1dcfc0c34f381c90e0ef74b34665c162a827981a32054cf1375d9781a9737249",
-             "conformal_robotcar/frames.csv":
-             "76a18d20699682664591ed9f3d0520ca53290567d5c834a811b2449663a06e25"}
+# frames.csv of results/paper as committed when its figures below were recounted
+RECOUNTED_SHA256 = "9f7af7ed5ad87ab31ee70e94a0ed681681f3cf143f03d7b108603874919278f4"
+
+
+def _recount(rows: list[dict], pipeline: str, *, certified_only: bool,
+             attack: str | None = None, eps: float | None = None) -> tuple[int, int, int, int]:
+    """(departures, episodes, frames with a departure, frames) of a pipeline's attacked
+    episodes, counted with the csv module alone (no project code)."""
+    picked = [r for r in rows if r["pipeline"] == pipeline and r["attack"] != "none"
+              and (attack is None or r["attack"] == attack)
+              and (eps is None or float(r["eps"]) == eps)
+              and (not certified_only or r["certified"] == "True")]
+    frames = {(r["preset"], r["frame"]) for r in picked}
+    departed = {(r["preset"], r["frame"]) for r in picked if r["left_lane"] == "True"}
+    return (sum(r["left_lane"] == "True" for r in picked), len(picked), len(departed),
+            len(frames))
 
 
 def test_the_committed_reproduction_gives_the_independent_recount():
-    """From results/paper/frames.csv: whatever run is committed, the headline's g departures
-    are claims.json's per-preset ones summed; on the run that was recounted, the recount's
-    figures."""
-    rows = hl.read_frames_csv(PAPER / "frames.csv")
+    """From results/paper/frames.csv, counted without the project's code: claims.json's
+    headline and per-preset figures are the recount's; on the run committed when this test was
+    written, the figures README quotes."""
+    with open(PAPER / "frames.csv", newline="") as f:
+        rows = list(csv.DictReader(f))
     claims = json.loads((PAPER / "claims.json").read_text())
-    g = [r for r in rows if r["pipeline"] == "g" and r["attack"] != "none"]
-    safe_set = hl.departure_shares(g, certified_only=True, resamples=200)
     presets = [p for p in claims if "g_inside_certificate" in claims[p]]
-    assert safe_set["departures"] == sum(claims[p]["g_inside_certificate"]["hits"]
-                                         for p in presets)
-    assert safe_set["episodes"] == sum(claims[p]["g_inside_certificate"]["total"]
-                                       for p in presets)
-    if any(not (PAPER / name).exists()
-           or hashlib.sha256((PAPER / name).read_bytes()).hexdigest() != digest
-           for name, digest in RECOUNTED.items()):
-        pytest.skip("results/paper was regenerated after the recount")
-    assert (safe_set["departures"], safe_set["episodes"]) == (80, 2888)
-    assert round(safe_set["pct"], 2) == 2.77
-    assert (safe_set["frames_departed"], safe_set["frames"]) == (25, 300)
-    f = [r for r in rows if r["pipeline"] == "f" and r["attack"] == "sa" and r["eps"] == 0.25]
-    f_share = hl.departure_shares(f, certified_only=False, resamples=200)
-    assert (f_share["departures"], f_share["episodes"]) == (44, 300)
-    conformal = [r for p in ("carla", "rtk", "robotcar")
-                 for r in hl.read_frames_csv(PAPER / f"conformal_{p}" / "frames.csv")
-                 if r["pipeline"] == "g" and r["attack"] != "none"]
-    robust = hl.departure_shares(conformal, certified_only=True, resamples=200)
-    assert (robust["departures"], robust["episodes"]) == (2, 2332)
-    assert (robust["frames_departed"], robust["frames"]) == (1, 268)
+    head = {(r["pipeline"], r["selection"]): r for r in claims["headline"]["rows"]
+            if r["preset"] == "all"}
+    for pipeline in ("g", "g_conformal"):
+        departures, episodes, frames_departed, _ = _recount(rows, pipeline, certified_only=True)
+        key = f"{pipeline}_inside_certificate"
+        assert departures == sum(claims[p][key]["hits"] for p in presets)
+        assert episodes == sum(claims[p][key]["total"] for p in presets)
+        row = head[(pipeline, hl.ALL)]
+        assert (row["departures"], row["episodes"], row["frames_departed"]) == \
+            (departures, episodes, frames_departed)
+    f_sa = _recount(rows, "f", certified_only=False, attack="sa", eps=0.25)
+    row = head[("f", "SA eps = 0.25")]
+    assert (row["departures"], row["episodes"], row["frames_departed"], row["frames"]) == f_sa
+    if hashlib.sha256((PAPER / "frames.csv").read_bytes()).hexdigest() != RECOUNTED_SHA256:
+        pytest.skip("results/paper was regenerated after these figures were recounted")
+    assert _recount(rows, "g", certified_only=True) == (54, 2898, 17, 300)
+    assert _recount(rows, "g_conformal", certified_only=True) == (0, 2292, 0, 300)
+    assert f_sa == (43, 300, 43, 300)
     # the truth-conditioned split: 0 departures where the range holds, for f as for g
-    split = hl.truth_conditioned(rows)
-    assert split["g"]["holds"] == dict(departures=0, episodes=2751)
-    assert split["f"]["holds"] == dict(departures=0, episodes=1502)
+    split = hl.truth_conditioned(hl.read_frames_csv(PAPER / "frames.csv"))
+    assert split["g"]["holds"]["departures"] == 0
+    assert split["f"]["holds"]["departures"] == 0
     # departures cluster: the bootstrap interval is wider than Clopper-Pearson over episodes
-    lo, hi = safe_set["ci95_pct"]
-    assert hi - lo > 100 * per_episode_cp_width(80, 2888)
+    lo, hi = head[("g", hl.ALL)]["ci95_pct"]
+    departures, episodes = (54, 2898, 17, 300)[:2]
+    assert hi - lo > 100 * per_episode_cp_width(departures, episodes)
+
+
+def _headline_table(text: str) -> list[str]:
+    """The rows of the first Markdown table in ``text``."""
+    lines = text.splitlines()
+    first = next(i for i, line in enumerate(lines) if line.startswith("|"))
+    table = []
+    for line in lines[first:]:
+        if not line.startswith("|"):
+            break
+        table.append(line)
+    return table
+
+
+def test_the_readme_quotes_the_committed_headline_row_for_row():
+    """README's first screen quotes claims.md's headline table as committed: a regenerated
+    run that changes a figure fails here until the README says the same."""
+    readme = (PAPER.parents[1] / "README.md").read_text()
+    start = readme.index("<!-- headline: results/paper/claims.md -->")
+    end = readme.index("<!-- /headline -->", start)
+    quoted = _headline_table(readme[start:end])
+    assert quoted == _headline_table((PAPER / "claims.md").read_text())
+    assert len(quoted) >= 4  # header, rule and at least f and g
