@@ -584,6 +584,7 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
 
         switches = tape.times_s[1:][np.diff(tape.design_index) != 0]
         summary.update(drive_switching_report(built.switching, switches))
+    summary["vehicle"] = dataclasses.asdict(built.vehicle)  # the vehicle that drove (SI units)
     return DriveResult(tape, ticks, summary, route, built.vehicle.lane_width_m)
 
 

@@ -2,11 +2,13 @@
 EA (a short drive each), prints one JSON object with the documented keys, and answers bad
 input with one line and exit code 2."""
 
+import dataclasses
 import json
 
 import pytest
 
 from drake_cert.cli import main
+from drake_cert.config import load_vehicle
 from systems.scenario import SHIPPED_SCENARIOS
 
 KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min_speed_mps",
@@ -33,6 +35,7 @@ def test_every_shipped_scenario_drives_under_every_attack(designs, scenario, pip
     assert KEYS <= set(summary)
     assert summary["pipeline"] == pipeline and summary["attack"] == attack
     assert not summary["left_lane"]
+    assert summary["vehicle"] == dataclasses.asdict(load_vehicle())  # the design file's
 
 
 @pytest.mark.parametrize("argv, message", [

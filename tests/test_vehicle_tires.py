@@ -72,6 +72,13 @@ def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
         assert scale * lo <= seg.stiffness_n_per_rad <= scale * hi
         assert seg.stiffness_n_per_rad == pytest.approx(scale * ref.stiffness_n_per_rad)
         assert seg.friction_mu == ref.friction_mu  # friction is the road's, not the tire's
+    # and the drive says which vehicle drove
+    from systems.driving import drive
+
+    short = dataclasses.replace(scenario, t_final_s=0.2)
+    result = drive(build_certified_driving_diagram(short, vehicle=SUV, settings=SETTINGS,
+                                                   conditions=conditions, designs=designs))
+    assert result.summary["vehicle"] == dataclasses.asdict(SUV)
 
 
 def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chosen(

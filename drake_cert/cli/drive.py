@@ -238,6 +238,11 @@ def format_summaries(summaries: list[dict]) -> str:
     s0 = summaries[0]
     source = " from OS entropy" if s0.get("seed_source") == "os-entropy" else ""
     lines = [f"scenario {s0['scenario']} (seed {s0['seed']}{source})"]
+    vehicle = s0.get("vehicle")
+    if vehicle:
+        lines.append(f"vehicle: mass {vehicle['mass_kg']:g} kg, lf {vehicle['lf_m']:g} m, "
+                     f"lr {vehicle['lr_m']:g} m, tire stiffness "
+                     f"x{vehicle['tire_stiffness_scale']:g}")
     for key, fmt in keys:
         cells = []
         for s in summaries:
