@@ -116,7 +116,9 @@ class CertifiedInterval(LeafSystem):
     """Input ``perception`` (abstract :class:`PerceptionResult`); abstract state and output
     ``decision`` (:class:`Decision`); vector outputs ``interval_n_per_rad`` (2, N/rad),
     ``design_index`` (1), ``speed_command_mps`` (1, m/s), ``certified_radius`` (1, L2 pixel
-    units) and ``status`` (1: 0 certified, 1 envelope, 2 stop / no safe speed, 3 base).
+    units), ``status`` (1: 0 certified, 1 envelope, 2 stop / no safe speed, 3 base) and
+    ``requested_design_index`` (1: the design the latest tick asked for, before the dwell time;
+    the envelope's index where perception abstained or the frame was bad).
 
     Args:
         designs: the designs to choose from (e.g. :func:`designs_for_preset`); must hold the
@@ -205,6 +207,8 @@ class CertifiedInterval(LeafSystem):
         self.DeclareVectorOutputPort("certified_radius", 1, self._calc_radius,
                                      prerequisites_of_calc=state)
         self.DeclareVectorOutputPort("status", 1, self._calc_status, prerequisites_of_calc=state)
+        self.DeclareVectorOutputPort("requested_design_index", 1, self._calc_requested,
+                                     prerequisites_of_calc=state)
 
     # ------------------------------------------------------------------ the decision
     def _decision(self, p: PerceptionResult, index: int, status: str, radius: float,
@@ -358,3 +362,6 @@ class CertifiedInterval(LeafSystem):
 
     def _calc_status(self, context, output: BasicVector) -> None:
         output.SetAtIndex(0, float(self._now(context).status_code))
+
+    def _calc_requested(self, context, output: BasicVector) -> None:
+        output.SetAtIndex(0, float(self._now(context).requested_design_index))

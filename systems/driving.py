@@ -126,6 +126,7 @@ class TickLog:
     status: np.ndarray  # (K,)
     design_index: np.ndarray  # (K,) design the block chose for the look-ahead point
     samples: np.ndarray  # (K,) noisy samples perception drew for the frame (selection incl.)
+    requested_design_index: np.ndarray  # (K,) design the tick asked for, before the dwell time
 
 
 @dataclasses.dataclass
@@ -484,6 +485,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         "status": log(interval.GetOutputPort("status"), period),
         "design": log(interval.GetOutputPort("design_index"), period),
         "samples": log(perception.GetOutputPort("samples"), period),
+        "requested": log(interval.GetOutputPort("requested_design_index"), period),
     }
     diagram = b.Build()
     diagram.set_name(f"certified_driving_{p.pipeline}")
@@ -649,7 +651,8 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
                     seen_stiffness_n_per_rad=seen[keep],
                     status=ticks_raw["status"][1][:m, 0][keep].astype(int),
                     design_index=ticks_raw["design"][1][:m, 0][keep].astype(int),
-                    samples=ticks_raw["samples"][1][:m, 0][keep].astype(int))
+                    samples=ticks_raw["samples"][1][:m, 0][keep].astype(int),
+                    requested_design_index=ticks_raw["requested"][1][:m, 0][keep].astype(int))
     return tape, ticks
 
 
@@ -667,9 +670,13 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
 
     ``mean_speed_mps`` is over the route (arc length >= 0, from the first point a frame
     showed); the lead-in before it (``lead_in_m``, driven under the envelope design before any
-    decision) counts in every other figure. ``envelope_fraction``: share of camera ticks whose
-    decision is the envelope (an abstention, a bad frame); ``envelope_time_fraction``: share
-    of simulated time the envelope design is in force on the route.
+    decision) counts in every other figure. ``abstention_fraction``: share of camera ticks
+    whose own decision is the envelope (perception abstained, or the frame was bad);
+    ``envelope_fraction``: share of camera ticks whose decision for the look point is the
+    envelope after the dwell time (the abstentions, and the ticks after one whose narrower
+    design the dwell time holds back); ``envelope_time_fraction``: share of simulated time the
+    envelope design is in force on the route (what the car drives under: the combined
+    decisions give an abstaining tick's stretch the join of its certified neighbours).
     ``certificate_failure_bound``: the union bound on the probability that some certificate of
     the drive failed (:func:`certificate_failure_bound`, over the at most
     ``ceil(simulated_s * rate_hz)`` decisions taken); where none failed, the design in force
@@ -715,6 +722,8 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
             scenario, alpha_spending, math.ceil(simulated_s * scenario.camera.rate_hz - 1e-9)),
         "attack_within_certified_budget": (not attacked
                                            or scenario.attack.eps <= scenario.perception.eps),
+        "abstention_fraction": (float(np.mean(ticks.requested_design_index == envelope_index))
+                                if envelope_index is not None and len(ticks.status) else None),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
         "envelope_time_fraction": envelope_time,
         "lead_in_m": float(lead_in_m),

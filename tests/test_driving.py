@@ -106,6 +106,7 @@ def test_bad_frames_fall_back_to_the_envelope_never_to_a_nominal(setup, fault):
     ticks = result.ticks
     assert len(ticks.times_s) >= 9  # 2 s at 5 Hz
     assert np.all(ticks.status == 1)
+    assert result.summary["abstention_fraction"] == 1.0  # each frame's own decision
     assert np.allclose(ticks.interval_n_per_rad, envelope)
     table = preset_designs(setup["designs"], setup["conditions"], "robotcar-like")
     assert np.all(ticks.design_index == envelope_design_index(table, setup["conditions"],
@@ -122,6 +123,21 @@ def test_the_same_seed_gives_the_same_summary(setup):
     assert first == second
     other = drive_scenario(with_overrides(scenario, seed=scenario.seed + 1), **setup).summary
     assert other["seed"] != first["seed"]
+
+
+def test_an_abstention_shows_the_envelope_at_once_and_the_dwell_adds_held_ticks(under_sa):
+    """A tick whose own decision is the envelope (abstained) has the envelope in force at its
+    look point at once (a widening); the dwell time may hold the envelope a little longer, so
+    the envelope share of the ticks is at least the abstention share."""
+    built, result = under_sa["certified"]
+    ticks, summary = result.ticks, result.summary
+    envelope = built.systems["interval"].envelope_index
+    abstained = ticks.requested_design_index == envelope
+    assert np.all(ticks.status[abstained] == 1)
+    assert summary["abstention_fraction"] == pytest.approx(np.mean(abstained))
+    assert summary["abstention_fraction"] <= summary["envelope_fraction"]
+    held = (ticks.status == 1) & ~abstained  # the envelope held by the dwell time
+    assert np.all(ticks.design_index[held] == envelope)
 
 
 def test_switches_respect_the_dwell_time_and_slower_speeds_come_before_the_segment(under_sa):

@@ -181,6 +181,9 @@ def test_the_dwell_time_holds_back_a_narrowing_with_the_join_of_both_in_force(co
         block.GetInputPort("perception").FixValue(context, _scripted(label, tick, 40.0 + tick))
         simulator.AdvanceTo(0.1 * tick + 0.06)  # the update at 0.1 k + 0.05
         seen.append(block.GetOutputPort("decision").Eval(context))
+        # the request behind the decision (the drive's abstention count reads this port)
+        assert _eval(block, "requested_design_index", simulator)[0] == \
+            seen[-1].requested_design_index == index[(labels[label],)]
     assert seen[0].design_index == sunny and not seen[0].held  # the first switch is free
     # t = 0.15: snow is not a widening of sunny and comes 0.1 s after a switch: held back, and
     # meanwhile the join (the envelope, holding sunny and snow alike) is in force at once.
