@@ -90,17 +90,18 @@ def main() -> None:
     print(f"dry_to_snow, camera 10 Hz, no attack, {args.seconds:g} s simulated, {precision} "
           f"(backend auto: {backend}), {args.threads} thread(s), time.perf_counter")
     print(f"{'configuration':<36}{'sim s / wall s':>15}{'wall s':>8}{'perception s':>14}"
-          f"{'ms / frame':>11}{'samples / frame':>17}{'envelope':>10}")
+          f"{'ms / frame':>11}{'samples / frame':>17}{'abstained':>10}{'envelope':>10}")
     out = {"precision": precision, "backend_auto": backend, "seconds": args.seconds,
            "n": args.n, "threads": args.threads}
     for name, s, spent in rows:
         per_frame = 1e3 * spent["perceive_s"] / max(spent["frames"], 1)
         print(f"{name:<36}{s['real_time_factor']:>15.3f}{s['wall_s']:>8.1f}"
               f"{spent['perceive_s']:>14.1f}{per_frame:>11.1f}{spent['samples_per_frame']:>17.0f}"
-              f"{s['envelope_fraction']:>10.1%}")
+              f"{s['abstention_fraction']:>10.1%}{s['envelope_fraction']:>10.1%}")
         out[name] = {"real_time_factor": s["real_time_factor"], "wall_s": s["wall_s"],
                      "perception_s": spent["perceive_s"], "ms_per_frame": per_frame,
                      "samples_per_frame": spent["samples_per_frame"],
+                     "abstention_fraction": s["abstention_fraction"],
                      "envelope_fraction": s["envelope_fraction"]}
     print(json.dumps(out))
 
