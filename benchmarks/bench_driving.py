@@ -3,8 +3,10 @@
 Drives the shipped dry_to_snow route for ``--seconds`` of simulated time with the camera at
 10 Hz and no attack, side by side in one run (same machine, same load):
 
-- certified, sequential decisions (the shipped default): at most n samples per frame, the
-  range decided as soon as it is known (the top label from the base model on the frame);
+- certified, sequential decisions with the safe-set interval: at most n samples per frame, the
+  range decided as soon as it is known;
+- certified, the robust conformal set decided sequentially (DESIGN 3.6; its calibration, 150
+  frames per label, runs before the timed drive and is not in the real-time factor);
 - certified, sequential, torch backend (the model in torch instead of ONNX Runtime);
 - certified, fixed-n certificates: n0 = 100 selection and n estimation samples per frame;
 - perception off in effect (the base pipeline: one forward pass of f per frame).
@@ -76,6 +78,8 @@ def main() -> None:
 
     configs = [
         (f"sequential, n <= {args.n}, {backend}", variant("certified", decision="sequential")),
+        (f"conformal, sequential, n <= {args.n}", variant("certified", decision="sequential",
+                                                        interval="conformal")),
         (f"sequential, n <= {args.n}, torch", variant("certified", decision="sequential",
                                                       backend="torch")),
         (f"fixed, n0 100 + n {args.n}, {backend}", variant("certified", decision="fixed",

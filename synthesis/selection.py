@@ -45,6 +45,13 @@ def envelope_design_index(designs: Sequence[ControllerDesign], conditions: Condi
     return design_index_for_labels(designs, conditions.preset(preset).labels)
 
 
+def design_label_spans(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                       preset: str) -> list[tuple[int, int]]:
+    """(first, last) place of each design's label range in the preset's friction order (the
+    spans the combined decisions work on, ``systems.decision_combination``)."""
+    return _label_spans(designs, list(conditions.preset(preset).labels))
+
+
 def _label_spans(designs: Sequence[ControllerDesign], family: list[str]) -> list[tuple[int, int]]:
     """(first, last) place of each design's label range in the family's friction order."""
     places = [[family.index(label) for label in d.labels] for d in designs]
@@ -65,23 +72,3 @@ def join_design_indices(designs: Sequence[ControllerDesign], conditions: Conditi
             hull = family[min(a_lo, b_lo):max(a_hi, b_hi) + 1]
             join[(i, j)] = design_index_for_labels(designs, hull)
     return join
-
-
-def meet_design_indices(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
-                        preset: str) -> dict[tuple[int, int], int]:
-    """For every pair (i, j) of the preset's designs, the index of the design whose label range
-    is the intersection of both ranges (a stiffness both designs hold lies in it); the
-    envelope's design when they do not intersect (two certificates that contradict each other:
-    one of them failed, and only the envelope is safe). ``designs`` as :func:`preset_designs`
-    returns them."""
-    family = list(conditions.preset(preset).labels)
-    envelope = design_index_for_labels(designs, family)
-    span = _label_spans(designs, family)
-    meet = {}
-    for i, (a_lo, a_hi) in enumerate(span):
-        for j, (b_lo, b_hi) in enumerate(span):
-            lo, hi = max(a_lo, b_lo), min(a_hi, b_hi)
-            meet[(i, j)] = (design_index_for_labels(designs, family[lo:hi + 1]) if lo <= hi
-                            else envelope)
-    return meet
-

@@ -28,6 +28,7 @@ from drake_cert.perception.frames import (
     severity_from_stiffness,
     style_for,
 )
+from drake_cert.rng import torch_generator
 from systems.route import Route
 
 
@@ -114,7 +115,7 @@ class CameraSource(LeafSystem):
             cond = self._conditions[seg.condition]
             severity = severity_from_stiffness(
                 torch.tensor([seg.stiffness_n_per_rad], dtype=torch.float64), *cond.interval)
-            gen = torch.Generator().manual_seed(child_seed(self.seed, Purpose.CAMERA, tick))
+            gen = torch_generator(child_seed(self.seed, Purpose.CAMERA, tick))
             image = render_frames(style_for(seg.condition), severity.float(), generator=gen,
                                   size=self.frame_size, contrast=self._contrast)[0]
         return CameraFrame(image=image, time_s=float(time_s), tick=int(tick),

@@ -238,7 +238,8 @@ class CertifiedInterval(LeafSystem):
                 index = self._by_labels.get((self.label_names[p.base_label],))
                 return (self.envelope_decision(p) if index is None
                         else self._decision(p, index, "base", 0.0))
-            if self.conformal is not None and p.certificate is not None:
+            if self.conformal is not None and (p.conformal is not None
+                                               or p.certificate is not None):
                 return self._conformal_decision(p)
             if p.decision is not None:  # sequential
                 rt = runtime_decision_interval(p.decision, self.conditions, self.preset,
@@ -277,7 +278,8 @@ class CertifiedInterval(LeafSystem):
 
     def _conformal_decision(self, p: PerceptionResult) -> Decision:
         """The robust conformal interval at budget eps from the certificate's own votes."""
-        ci = conformal_interval(p.certificate, self.conformal, self.conditions, self.preset,
+        votes = p.conformal if p.conformal is not None else p.certificate
+        ci = conformal_interval(votes, self.conformal, self.conditions, self.preset,
                                 self.eps, self.label_names)
         if tuple(ci.labels) == self.family:
             return self.envelope_decision(p)

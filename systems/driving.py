@@ -65,9 +65,9 @@ from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from synthesis.design import ControllerDesign
 from synthesis.selection import (
+    design_label_spans,
     envelope_design_index,
     join_design_indices,
-    meet_design_indices,
     preset_designs,
 )
 from systems.attacker import Attacker
@@ -147,6 +147,7 @@ class DrivingDiagram:
     lead_in_m: float = 0.0  # the car starts this far before the route (m): the first frame
     # shows the route's start; the lead-in has the first segment's road and is driven under the
     # envelope design before any decision
+    guarantee: dict = dataclasses.field(default_factory=dict)  # guarantee_summary()
 
 
 def entropy_seed() -> int:
@@ -172,7 +173,9 @@ def with_overrides(scenario: Scenario, *, pipeline: str | None = None, attack: s
 
 
 def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> float:
-    """Run-time conformal beta of the median-smoothed regressor (DESIGN 3), largest over labels."""
+    """Run-time conformal beta of the median-smoothed regressor (DESIGN 3), largest over labels;
+    ``model``: the module perception evaluates (the calibration is that of the model as
+    evaluated: ONNX Runtime, int8, bf16)."""
     from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
     from drake_cert.perception.datasets import load_split
 
@@ -187,21 +190,57 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
     return calib.beta
 
 
-def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable):
+def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
+                           progress: Callable | None = None, *, cache: bool = True):
     """The robust conformal calibration of the certified classifier (DESIGN 3): held-out
-    calibration frames of every label, each with its own noise stream, at the run-time n."""
+    calibration frames of every label, each with its own noise stream, at the run-time n;
+    ``model``: the module perception evaluates (calibrated as evaluated). Kept in the
+    calibration cache (:mod:`drake_cert.certification.calibration_cache`) unless ``cache`` is
+    False (a deployment's fresh noise)."""
+    from drake_cert.certification import conformal as rc
+    from drake_cert.certification.backends import resolve_backend
+    from drake_cert.certification.calibration_cache import cached
     from drake_cert.certification.classifier import SmoothedClassifier
-    from drake_cert.certification.conformal import calibrate_robust_conformal
     from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import file_sha256, model_path
 
     p = scenario.perception
-    cal = load_split(p.preset, "calibration", conditions=conditions,
-                     frames_per_class=p.conformal_frames_per_class)
-    classifier = SmoothedClassifier(model, len(conditions.preset(p.preset).labels), p.sigma)
-    return calibrate_robust_conformal(classifier, cal.images, cal.labels.tolist(), n=p.n,
-                                      batch_size=p.batch_size,
-                                      root_seed=child_seed(scenario.seed,
-                                                           Purpose.CONFORMAL_CALIBRATION))
+    root = child_seed(scenario.seed, Purpose.CONFORMAL_CALIBRATION)
+
+    def compute() -> dict:
+        cal = load_split(p.preset, "calibration", conditions=conditions,
+                         frames_per_class=p.conformal_frames_per_class)
+        classifier = SmoothedClassifier(model, len(conditions.preset(p.preset).labels),
+                                        p.sigma)
+        return rc.calibrate_robust_conformal(classifier, cal.images, cal.labels.tolist(),
+                                             n=p.n, batch_size=p.batch_size, progress=progress,
+                                             root_seed=root).to_json()
+
+    if not cache:
+        return rc.RobustConformalCalibration.from_json(compute())
+    precision = resolve_precision(p.precision)
+    key = {"model_sha256": file_sha256(model_path(p.preset, p.task, p.sigma)),
+           "backend": resolve_backend(p.backend, precision), "precision": precision,
+           "quantization": p.quantization, "preset": p.preset, "sigma": p.sigma, "n": p.n,
+           "batch_size": p.batch_size, "frames_per_class": p.conformal_frames_per_class,
+           "root_seed": root, "alpha_c": rc.ALPHA_C, "beta_cal": rc.BETA_CAL,
+           "beta_test": rc.BETA_TEST,
+           "conditions": [[c.name, *map(float, c.interval)]
+                          for c in conditions.preset_conditions(p.preset)]}
+    return rc.RobustConformalCalibration.from_json(cached("robust_conformal", key, compute))
+
+
+def _calibration_warnings(scenario: Scenario, regression_beta: float) -> list[str]:
+    """What the summary must say about a calibration that makes every interval the envelope
+    (a regression beta that is infinite: too few calibration frames for alpha_c)."""
+    p = scenario.perception
+    if p.pipeline != "certified" or p.task != "regress" or math.isfinite(regression_beta):
+        return []
+    needed = math.ceil((1.0 - p.alpha_c) / p.alpha_c)
+    return [f"the regression's conformal beta is infinite ({p.calibration_frames_per_class} "
+            f"calibration frames per label; alpha_c = {p.alpha_c:g} needs at least {needed}): "
+            "every interval is the envelope; raise perception.calibration_frames_per_class to "
+            f"{needed} or more"]
 
 
 def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable,
@@ -264,6 +303,13 @@ def check_route_is_seen(scenario: Scenario, table: list[ControllerDesign]) -> No
                 f"{gap:.2f} m between two frames)")
 
 
+def decision_lag_ticks(scenario: Scenario) -> int:
+    """Camera ticks by which the decided road trails the newest look point: the combined
+    decisions of the certified pipeline narrow a stretch only once ``tolerated_wrong_frames``
+    later frames have bounded it (DESIGN 6.3); the base pipeline's decisions stand alone."""
+    return scenario.tolerated_wrong_frames if scenario.perception.pipeline == "certified" else 0
+
+
 def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
     """:class:`ConfigError` when the camera's look-ahead cannot carry the table's top speed:
     the car must be able to brake to the slowest command before the end of the road it has a
@@ -274,45 +320,110 @@ def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
     floor = slowest_command_mps(table, motion.stop_speed_mps)
     top_index = max(range(len(table)), key=lambda i: _speeds(table)[i])
     top = _speeds(table)[top_index]
-    kw = dict(decel_mps2=decel, margin_m=BRAKING_MARGIN_M, floor_speed_mps=floor)
+    lag = decision_lag_ticks(scenario)
+    kw = dict(decel_mps2=decel, margin_m=BRAKING_MARGIN_M, floor_speed_mps=floor,
+              lag_ticks=lag)
     supported = supported_speed_mps(cam.look_ahead_m, cam.rate_hz, **kw)
     if supported < top - 1e-9:
         needed = look_ahead_needed_m(top, cam.rate_hz, **kw)
         raise ConfigError(
             f"camera.look_ahead_m = {cam.look_ahead_m:g} m supports at most {supported:.2f} m/s "
             f"at {cam.rate_hz:g} Hz (braking at {decel:.2f} m/s^2 to the slowest command, "
-            f"{floor:.2f} m/s, {BRAKING_MARGIN_M:g} m before the end of the road a frame has "
-            f"shown, which stays put for up to {frontier_latency_s(cam.rate_hz):.2f} s), below "
-            f"the design table's top speed {top:.2f} m/s (labels "
+            f"{floor:.2f} m/s, {BRAKING_MARGIN_M:g} m before the end of the decided road, "
+            "which stays put for up to "
+            f"{frontier_latency_s(cam.rate_hz, lag_ticks=lag):.2f} s), below the design "
+            f"table's top speed {top:.2f} m/s (labels "
             f"{list(table[top_index].labels)}); raise look_ahead_m to at least {needed:.1f} m "
             "or raise camera.rate_hz")
 
 
+def planned_ticks(scenario: Scenario, table: list[ControllerDesign]) -> int:
+    """Camera ticks the drive plans for: the route and the lead-in at the slowest moving design
+    speed, at most the ticks of ``t_final_s`` (DESIGN 6.2)."""
+    moving = [v for v in _speeds(table) if v >= scenario.motion.stop_speed_mps]
+    slowest = min(moving, default=scenario.motion.stop_speed_mps)  # every design stops: stop speed
+    return planned_decisions(scenario.route_length_m + scenario.camera.look_ahead_m,
+                             slowest, scenario.camera.rate_hz, scenario.t_final_s)
+
+
 def alpha_spending(scenario: Scenario, table: list[ControllerDesign]) -> AlphaSpending | None:
     """How the drive spends ``perception.alpha`` (DESIGN 6.2): with ``alpha_scope: drive``, an
-    :class:`AlphaSpending` of that total over the ticks the route and the lead-in take at the
-    slowest moving design speed (at most the ticks of ``t_final_s``); None with
+    :class:`AlphaSpending` of that total over the :func:`planned_ticks`; None with
     ``alpha_scope: decision`` (``alpha`` per decision) or for the base pipeline."""
     p = scenario.perception
     if p.alpha_scope != "drive" or p.pipeline != "certified":
         return None
-    moving = [v for v in _speeds(table) if v >= scenario.motion.stop_speed_mps]
-    slowest = min(moving, default=scenario.motion.stop_speed_mps)  # every design stops: stop speed
-    planned = planned_decisions(scenario.route_length_m + scenario.camera.look_ahead_m,
-                                slowest, scenario.camera.rate_hz, scenario.t_final_s)
-    return AlphaSpending(p.alpha, planned)
+    return AlphaSpending(p.alpha, planned_ticks(scenario, table))
 
 
 def certificate_failure_bound(scenario: Scenario, spending: AlphaSpending | None,
                               ticks: int) -> float:
     """The union bound on the probability that some certificate of a drive of ``ticks``
     decisions failed: the alpha spent (drive scope) or ``ticks * alpha`` (decision scope,
-    capped at 1); 0 for the base pipeline, which certifies nothing."""
+    capped at 1); 0 for the base pipeline, which certifies nothing. It counts the realised
+    ticks and the certificates only: not the conformal miscoverage of a frame, not the
+    standing assumption of the safe-set interval, not the tolerance of the combined
+    decisions; :func:`guarantee_failure_bound` is the bound on the drive's guarantee."""
     if scenario.perception.pipeline != "certified":
         return 0.0
     if spending is not None:
         return spending.spent(ticks)
     return min(1.0, ticks * scenario.perception.alpha)
+
+
+def frame_miscoverage(scenario: Scenario, conformal=None) -> float:
+    """Probability (per frame, marginal) that a frame's interval misses the true condition
+    although every certificate held: the robust conformal set's ``alpha_total`` (``conformal``:
+    its calibration), the regression interval's ``alpha_c + alpha_m``; 0 for the safe-set
+    interval, which instead rests on the standing assumption (DESIGN 3.4)."""
+    p = scenario.perception
+    if p.task == "regress":
+        return p.alpha_c + p.alpha_m
+    if p.interval == "conformal":
+        return float(conformal.alpha_total) if conformal is not None else 1.0
+    return 0.0
+
+
+def guarantee_failure_bound(scenario: Scenario, planned: int,
+                            miscoverage: float) -> float | None:
+    """Bound, computed before the drive from its ``planned`` ticks, on the probability that
+    somewhere on the route the design in force misses the stiffness under the car or the car
+    is faster than its safe speed (DESIGN 6.2): the combined decisions keep the truth unless
+    more than ``j = tolerated_wrong_frames`` frames are wrong, and the expected number of wrong
+    frames is at most the certificates' alpha (spent over the drive, or ``planned * alpha``)
+    plus ``planned * miscoverage``; Markov's inequality gives
+    ``P(more than j wrong) <= E[wrong] / (j + 1)`` (no independence assumed), capped at 1.
+    For a drive longer than the plan, the certificates stay covered by the spending's tail;
+    each extra frame adds its ``miscoverage``. None for the base pipeline (no guarantee). The
+    safe-set interval's bound holds under its standing assumption."""
+    p = scenario.perception
+    if p.pipeline != "certified":
+        return None
+    certificates = p.alpha if p.alpha_scope == "drive" else planned * p.alpha
+    expected_wrong = certificates + planned * miscoverage
+    return min(1.0, expected_wrong / (scenario.tolerated_wrong_frames + 1))
+
+
+def guarantee_summary(scenario: Scenario, table: list[ControllerDesign],
+                      conformal=None) -> dict:
+    """The drive summary's account of what its guarantee rests on: ``interval``,
+    ``standing_assumption`` (true where the guarantee assumes the smoothed classifier right on
+    the clean frame: the safe-set interval), ``tolerated_wrong_frames``, ``planned_ticks``,
+    ``frame_miscoverage`` and ``guarantee_failure_bound``."""
+    p = scenario.perception
+    certified = p.pipeline == "certified"
+    planned = planned_ticks(scenario, table)
+    miss = frame_miscoverage(scenario, conformal) if certified else None
+    return {
+        "interval": (("median_conformal" if p.task == "regress" else p.interval)
+                     if certified else "base"),
+        "standing_assumption": certified and p.task == "classify" and p.interval == "safe_set",
+        "tolerated_wrong_frames": scenario.tolerated_wrong_frames if certified else 0,
+        "planned_ticks": planned,
+        "frame_miscoverage": miss,
+        "guarantee_failure_bound": (guarantee_failure_bound(scenario, planned, miss)
+                                    if certified else None),
+    }
 
 
 def check_perception_budget(scenario: Scenario, conditions: ConditionsTable,
@@ -322,7 +433,8 @@ def check_perception_budget(scenario: Scenario, conditions: ConditionsTable,
     share of the drive's alpha; needs the design ``table``), checked before any model is
     loaded or any drive starts."""
     p = scenario.perception
-    if p.pipeline == "certified" and p.resolved_decision == "sequential":
+    if p.pipeline == "certified" and p.resolved_decision == "sequential" \
+            and p.interval == "safe_set":
         labels = list(conditions.preset(p.preset).labels)
         spending = alpha_spending(scenario, table) if table is not None else None
         alpha = spending.planned_alpha if spending is not None else p.alpha
@@ -351,7 +463,9 @@ def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sig
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
                                     settings: Settings, conditions: ConditionsTable,
                                     designs: list[ControllerDesign],
-                                    tape_period_s: float = 0.05) -> DrivingDiagram:
+                                    tape_period_s: float = 0.05,
+                                    calibration_progress: Callable | None = None
+                                    ) -> DrivingDiagram:
     """Wire route, camera, attacker, perception, certified interval, longitudinal motion,
     switching L1 controller, Saturation and the Fiala plant into one Diagram, with logs.
 
@@ -388,9 +502,10 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     labels = list(conditions.preset(p.preset).labels)
     period = 1.0 / cam.rate_hz
     v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)
-    beta = _regression_beta(model, scenario, conditions) \
+    beta = _regression_beta(evaluated, scenario, conditions) \
         if certified and p.task == "regress" else math.inf
-    conformal = _conformal_calibration(model, scenario, conditions) \
+    conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress,
+                                       cache=seed_source == "scenario") \
         if certified and p.task == "classify" and p.interval == "conformal" else None
 
     b = DiagramBuilder()
@@ -404,8 +519,9 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
         # the certified pipeline combines its certified decisions over the shortest stretch of
         # one condition; the base pipeline's raw predictions each stand alone (the baseline)
-        meet=meet_design_indices(table, tires, p.preset) if certified else None,
+        spans=design_label_spans(table, tires, p.preset) if certified else None,
         window_m=scenario.min_condition_length_m if certified else 0.0,
+        tolerance=scenario.tolerated_wrong_frames,
         envelope_index=envelope,
         initial_arc_length_m=-cam.look_ahead_m))
     ctl = settings.controller
@@ -426,7 +542,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
         offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
         frame_size=cam.frame_size, decision=p.resolved_decision,
         ranges=candidate_ranges(tires, p.preset, labels),
-        alpha_spending=alpha_spending(scenario, table)))
+        alpha_spending=alpha_spending(scenario, table), conformal=conformal))
     interval = add("certified_interval", CertifiedInterval(
         table, tires, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
         regression_beta=beta, conformal=conformal,
@@ -497,7 +613,9 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     switching = common_lyapunov_certificate(vehicle, table, settings, family=p.preset)
     return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
                           v0, vehicle, seed_source, switching=switching,
-                          lead_in_m=float(cam.look_ahead_m))
+                          lead_in_m=float(cam.look_ahead_m),
+                          guarantee={**guarantee_summary(scenario, table, conformal),
+                                     "warnings": _calibration_warnings(scenario, beta)})
 
 
 @dataclasses.dataclass
@@ -580,7 +698,8 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
                               ending=ending["reason"], seed_source=built.seed_source,
                               envelope_index=built.systems["interval"].envelope_index,
                               lead_in_m=built.lead_in_m,
-                              alpha_spending=built.systems["perception"].alpha_spending)
+                              alpha_spending=built.systems["perception"].alpha_spending,
+                              guarantee=built.guarantee)
     if built.switching is not None:
         from synthesis.switching import drive_switching_report
 
@@ -592,13 +711,16 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
 
 def drive_scenario(scenario: Scenario, *, vehicle: VehicleParams, settings: Settings,
                    conditions: ConditionsTable, designs: list[ControllerDesign],
-                   progress: Callable[[float], None] | None = None) -> DriveResult:
-    """Build the Diagram for ``scenario`` and drive it (one call; usable in a worker process)."""
+                   progress: Callable[[float], None] | None = None,
+                   calibration_progress: Callable | None = None) -> DriveResult:
+    """Build the Diagram for ``scenario`` and drive it (one call; usable in a worker process);
+    ``calibration_progress`` wraps the iterable of calibration frames (a progress bar)."""
     from drake_cert.threads import torch_threads
 
     with torch_threads(1):
         built = build_certified_driving_diagram(scenario, vehicle=vehicle, settings=settings,
-                                                conditions=conditions, designs=designs)
+                                                conditions=conditions, designs=designs,
+                                                calibration_progress=calibration_progress)
         return drive(built, progress=progress)
 
 
@@ -665,7 +787,8 @@ def time_left_lane(tape: DriveTape) -> float | None:
 def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
                     simulated_s: float, wall_s: float, ending: str,
                     seed_source: str = "scenario", envelope_index: int | None = None,
-                    lead_in_m: float = 0.0, alpha_spending: AlphaSpending | None = None) -> dict:
+                    lead_in_m: float = 0.0, alpha_spending: AlphaSpending | None = None,
+                    guarantee: dict | None = None) -> dict:
     """The ``drive --json`` object (DESIGN 7 metrics of one drive).
 
     ``mean_speed_mps`` is over the route (arc length >= 0, from the first point a frame
@@ -681,6 +804,8 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     the drive failed (:func:`certificate_failure_bound`, over the at most
     ``ceil(simulated_s * rate_hz)`` decisions taken); where none failed, the design in force
     held the stiffness under the car up to the standing assumption (DESIGN 6.2).
+    ``guarantee``: :func:`guarantee_summary` (``interval``, ``standing_assumption``,
+    ``guarantee_failure_bound`` and what it is computed from), merged in.
     """
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
@@ -743,4 +868,5 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "backend": resolve_backend(scenario.perception.backend,
                                    resolve_precision(scenario.perception.precision)),
         "quantization": scenario.perception.quantization,
+        **(guarantee or {}),
     }

@@ -29,27 +29,25 @@ given stretches of one condition longer than that gap), and a decision at positi
 supersedes the entries at positions >= p (e.g. a dwell-released design that applies from the
 look point of the tick that first asked for it).
 
-Decisions combined (``meet`` and ``window_m`` > 0, as the driving Diagram builds it): every
+Decisions combined (``spans`` and ``window_m`` > 0, as the driving Diagram builds it): every
 decision is a statement "the condition at its look point lies in the design's label range"
-(the envelope's: anywhere). Two decisions whose look points a < b are closer than the window
-(the scenario's ``min_condition_length_m``, which no interior stretch of one road condition on
-the route is as short as, checked before driving) have at most one condition boundary between
-them, so every point of [a, b] has the condition of a or of b: the join (hull) of their label
-ranges holds on all of [a, b]. The stretch between two consecutive look points therefore gets
-the intersection (meet) of the joins of every such pair around it; a new decision narrows the
-stretches of the last window and never widens or slows them (of two designs that both hold,
-the faster is kept), and an abstention between two certified
-decisions gets their join instead of the envelope. A decision that contradicts the recent ones
-(its pairs would exclude the range a look point certified: one of the certificates failed,
-which one is unknown) is taken as an abstention: the stretches already decided stand, the new
-stretch gets the envelope (widening a stretch the car may already be on would leave it too
-fast for it). A point's design then rests on the
-certificates of the frames used (failure probability at most their number times alpha, union
-bound; all the drive's certificates hold at once with probability at least 1 - K alpha for K
-frames, and then every design in force holds). The speed command of a stretch is its design's
-safe speed. Without a meet table each decision stands alone: the road between the previous
-look point q and this one p gets the join of their designs from q on, and a decision at p
-supersedes the entries at positions >= p.
+(the envelope's: anywhere), kept as it came (``looks``). Two look points closer than the
+window (the scenario's ``min_condition_length_m``, which no interior stretch of one road
+condition on the route is as short as, checked before driving) have at most one condition
+boundary between them, so if both frames are right the hull of their ranges holds between
+them. The road between consecutive look points runs under the range of
+:func:`systems.decision_combination.tolerant_span`: the hull, over every set of at most
+``tolerance`` frames left out, of the intersection of the hulls of the pairs that avoid them;
+it holds the condition there whenever at most ``tolerance`` of the frames it uses are wrong
+(DESIGN 6.3). A new decision recomputes the stretches within the window behind it; their
+ranges only narrow (of two designs that both hold, the faster is kept), except to the envelope
+when the frames contradict each other beyond the tolerance. The road from the newest look
+point on gets the envelope (with tolerance 0: the newest decision's design), and a stretch is
+narrowed once ``tolerance`` + 1 frames on each side bound it. A point's design then rests on
+the frames used; the drive's ``guarantee_failure_bound`` bounds the chance that more than
+``tolerance`` of them are wrong (DESIGN 6.2). Without a spans table each decision stands
+alone: the road between the previous look point q and this one p gets the join of their
+designs from q on, and a decision at p supersedes the entries at positions >= p.
 
 Speed reference at x (the braking envelope, a = ``envelope_decel_fraction`` * a_dec):
   ``v_ref(x) = min(c(x), min_{p_i > x} b(c_i, p_i - m - x), b(v_f, f - m - x))``,
@@ -59,9 +57,11 @@ is reached m metres before it. The frontier f is the last look point a decision 
 for; the road beyond it has no decision yet, and the next decision may give the slowest
 command (v_f = ``frontier_speed_mps``, the envelope's) from f on, so the car keeps able to
 reach v_f before f. Between two updates the frontier stays put for at most
-:func:`frontier_latency_s` = (1 + 3/4) T, so a look-ahead L supports the constant speeds with
-``v^2 <= v_f^2 + 2 a (L - m - 1.75 T v)`` (:func:`supported_speed_mps`; the scenario check
-``systems.driving.check_look_ahead`` refuses a camera that cannot carry the table's top speed).
+:func:`frontier_latency_s` = (1 + 3/4) T, and combined decisions that tolerate j wrong frames
+decide the road only up to the look point j ticks back, so a look-ahead L supports the
+constant speeds with ``v^2 <= v_f^2 + 2 a (L - m - (1.75 + j) T v)``
+(:func:`supported_speed_mps`; the scenario check ``systems.driving.check_look_ahead`` refuses a
+camera that cannot carry the table's top speed).
 The envelope keeps (1 - fraction) of the braking authority for the tracking law, so the car
 catches up with it after a late (too close) entry.
 
@@ -79,7 +79,7 @@ brakes for, at a command no slower than v_f.
 
 import dataclasses
 import math
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 import pydrake.symbolic as sym
 from pydrake.common.value import AbstractValue
@@ -87,10 +87,12 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 
 from drake_cert.errors import ConfigError
+from systems.decision_combination import is_within, stretch_spans
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
 BRAKING_MARGIN_M = 2.0  # a command ahead is reached this far before its point (m)
 ENVELOPE_DECEL_FRACTION = 0.9  # share of the braking authority the braking envelope plans with
+MAX_LOOKS = 400  # recent decisions a combining profile keeps (the car at rest adds one a tick)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,57 +149,56 @@ class SpeedProfile:
         return SpeedProfile(tuple(kept), float(time_s), max(q, look))
 
     def with_combined_decision(self, look_m: float, design_index: int, time_s: float,
-                               arc_length_m: float, *, window_m: float,
-                               join: dict[tuple[int, int], int],
-                               meet: dict[tuple[int, int], int],
+                               arc_length_m: float, *, window_m: float, tolerance: int,
+                               spans: Sequence[tuple[int, int]],
+                               design_of_span: dict[tuple[int, int], int],
                                command_of: Callable[[int], float],
                                envelope_index: int) -> "SpeedProfile":
-        """The profile after one decision, combining it with the decisions of the last
-        ``window_m`` metres (module docstring, "Decisions combined").
+        """The profile after one decision, combined with the decisions around it by the rule
+        of :mod:`systems.decision_combination` (module docstring, "Decisions combined").
 
-        ``join``/``meet``: design index of the hull/intersection of two designs' label ranges
-        (:func:`synthesis.selection.join_design_indices`, ``meet_design_indices``);
-        ``command_of(design)``: its speed command (m/s, 0 = stop).
+        ``spans[d]``: the label span of design d in friction order; ``design_of_span``: its
+        inverse; ``tolerance``: the wrong decisions among the frames around a point that the
+        rule tolerates; ``command_of(design)``: its speed command (m/s, 0 = stop).
         """
-        r, d_r = float(look_m), int(design_index)
-        looks = [lk for lk in self.looks if lk[0] < r]
-        first = next((i for i, lk in enumerate(looks) if lk[0] > r - window_m), len(looks))
-        recent = looks[first:]  # decisions that pair with this one (closer than the window)
-        profile = SpeedProfile(tuple(e for e in self.entries if e[0] < r))
-        stretches = []
-        env, contradiction = int(envelope_index), False
-        for i, (l_i, d_i) in enumerate(recent):
-            pairs = [join[(d_a, d_r)] for _, d_a in recent[:i + 1]]
-            value = pairs[0]
-            for p in pairs[1:]:
-                value = meet[(value, p)]
-            if i < len(recent) - 1:  # an older stretch keeps what earlier pairs gave it
-                before = profile.in_force(l_i)[1]
-                value = meet[(before, value)]
-                if command_of(value) < command_of(before):
-                    value = before  # both hold; a narrower range need not be faster
-            if value != env and d_i != env and meet[(value, d_i)] == env:
-                contradiction = True  # the pairs exclude what this look certified: one failed
-            stretches.append((l_i, value))
-        if contradiction and d_r != env:  # taken as an abstention: the decided stretches stand
-            return self.with_combined_decision(r, env, time_s, arc_length_m, window_m=window_m,
-                                               join=join, meet=meet, command_of=command_of,
-                                               envelope_index=env)
-        if not recent and looks:  # the previous decision is a window or more back
-            stretches.append((looks[-1][0], envelope_index))
-        start = stretches[0][0] if stretches else r
+        r, full = float(look_m), spans[int(envelope_index)]
+        looks = (*self.looks, (r, int(design_index)))
+        looks = _recent_looks(looks, r - 2.0 * window_m, int(envelope_index))
+        positions = sorted({lk[0] for lk in looks})
+        # only stretches starting less than a window before r can pair with the new look
+        first = next((k for k, q in enumerate(positions) if q > r - window_m), len(positions))
+        spanned = sorted(((lk[0], spans[lk[1]]) for lk in looks), key=lambda lk: lk[0])
+        new = stretch_spans(spanned, window_m=window_m, tolerance=tolerance, full=full,
+                            first=first)
+        start = new[0][0] if new else r
         kept = [e for e in self.entries if e[0] < start]
-        for position, value in [*stretches, (r, d_r)]:
-            # (kept is empty when the window reaches behind the entry in force at the car)
+        for position, span in new:
+            value = design_of_span[span]
+            before = self.in_force(position)[1]
+            if (is_within(span, spans[before]) and span != full
+                    and command_of(value) < command_of(before)):
+                value = before  # both hold; a narrower range need not be faster
             if not kept or (kept[-1][1], kept[-1][2]) != (command_of(value), value):
+                # (kept is empty when the window reaches behind the entry in force at the car)
                 kept.append((float(position), float(command_of(value)), int(value)))
         passed = [i for i, e in enumerate(kept) if e[0] <= arc_length_m]
-        kept = kept[passed[-1]:]  # drop passed entries except the one in force
-        keep_looks = tuple(lk for lk in looks if lk[0] > r - window_m) + ((r, d_r),)
-        if len(keep_looks) == 1 and looks:
-            keep_looks = (looks[-1], (r, d_r))  # the previous look bounds the next gap
-        return SpeedProfile(tuple(kept), float(time_s), max(self.last_look_m, r),
-                            looks=keep_looks)
+        kept = kept[passed[-1]:] if passed else kept  # drop passed entries but the one in force
+        return SpeedProfile(tuple(kept), float(time_s), max(self.last_look_m, r), looks=looks)
+
+
+def _recent_looks(looks: tuple[tuple[float, int], ...], after_m: float,
+                  envelope_index: int) -> tuple[tuple[float, int], ...]:
+    """The looks a combining profile keeps: those after ``after_m`` (two windows back: every
+    stretch a new look can change finds its left looks there), at most :data:`MAX_LOOKS`; over
+    that (a car at rest sees one look point tick after tick), abstentions that share their
+    look point with another look go first (they bound no stretch), then the oldest."""
+    kept = tuple(lk for lk in looks if lk[0] > after_m)
+    if len(kept) > MAX_LOOKS:
+        count = {}
+        for lk in kept:
+            count[lk[0]] = count.get(lk[0], 0) + 1
+        kept = tuple(lk for lk in kept if lk[1] != envelope_index or count[lk[0]] == 1)
+    return kept[-MAX_LOOKS:]
 
 
 def _braking_curve(command_mps: float, distance_m: float,
@@ -234,20 +235,23 @@ def speed_reference(entries, arc_length_m: float, *, decel_mps2: float, margin_m
     return v_ref, slope
 
 
-def frontier_latency_s(rate_hz: float, offset_fraction: float = 0.75) -> float:
-    """Longest time (s) the frontier stays put: one camera period plus the offset at which the
-    profile takes a decision in (the car drives this far on the last frontier)."""
-    return (1.0 + offset_fraction) / rate_hz
+def frontier_latency_s(rate_hz: float, offset_fraction: float = 0.75,
+                       lag_ticks: int = 0) -> float:
+    """Longest time (s) the end of the decided road stays put: one camera period plus the
+    offset at which the profile takes a decision in (the car drives this far on the last
+    frontier), plus ``lag_ticks`` periods when the road is decided only up to the look point
+    that many ticks back (combined decisions tolerating that many wrong frames, DESIGN 6.3)."""
+    return (1.0 + offset_fraction + lag_ticks) / rate_hz
 
 
 def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: float,
                         margin_m: float, floor_speed_mps: float,
-                        offset_fraction: float = 0.75) -> float:
+                        offset_fraction: float = 0.75, lag_ticks: int = 0) -> float:
     """Largest constant speed (m/s) a camera look-ahead supports: the car can still brake at
     ``decel_mps2`` to ``floor_speed_mps`` (the slowest command) ``margin_m`` before the
     frontier when the frontier has not moved for :func:`frontier_latency_s`, i.e. the root of
     ``v^2 = v_f^2 + 2 a (L - m - tau v)``."""
-    a, tau = float(decel_mps2), frontier_latency_s(rate_hz, offset_fraction)
+    a, tau = float(decel_mps2), frontier_latency_s(rate_hz, offset_fraction, lag_ticks)
     c = floor_speed_mps**2 + 2.0 * a * (look_ahead_m - margin_m)
     if c <= 0.0:
         return 0.0
@@ -256,10 +260,10 @@ def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: floa
 
 def look_ahead_needed_m(speed_mps: float, rate_hz: float, *, decel_mps2: float,
                         margin_m: float, floor_speed_mps: float,
-                        offset_fraction: float = 0.75) -> float:
+                        offset_fraction: float = 0.75, lag_ticks: int = 0) -> float:
     """The look-ahead (m) that supports ``speed_mps`` (inverse of :func:`supported_speed_mps`)."""
     return (max(speed_mps**2 - floor_speed_mps**2, 0.0) / (2.0 * decel_mps2) + margin_m
-            + frontier_latency_s(rate_hz, offset_fraction) * speed_mps)
+            + frontier_latency_s(rate_hz, offset_fraction, lag_ticks) * speed_mps)
 
 
 class SpeedPlanner(LeafSystem):
@@ -311,8 +315,9 @@ class SpeedPlanner(LeafSystem):
         if m.combines:
             new = profile.with_combined_decision(
                 look, int(decision.design_index), float(decision.time_s), x,
-                window_m=m.window_m, join=m._join, meet=m._meet,
-                command_of=m.design_command, envelope_index=m.envelope_index)
+                window_m=m.window_m, tolerance=m.tolerance, spans=m._spans,
+                design_of_span=m._design_of_span, command_of=m.design_command,
+                envelope_index=m.envelope_index)
         else:
             new = profile.with_decision(float(decision.position_m),
                                         m.speed_command(decision.speed_command_mps),
@@ -362,8 +367,8 @@ class LongitudinalMotion(Diagram):
                  join: dict[tuple[int, int], int] | None = None,
                  design_speeds_mps: list[float] | None = None,
                  frontier_speed_mps: float | None = None,
-                 meet: dict[tuple[int, int], int] | None = None, window_m: float = 0.0,
-                 envelope_index: int | None = None):
+                 spans: Sequence[tuple[int, int]] | None = None, window_m: float = 0.0,
+                 tolerance: int = 1, envelope_index: int | None = None):
         super().__init__()
         for name, value in (("max_decel_mps2", max_decel_mps2),
                             ("max_accel_mps2", max_accel_mps2),
@@ -397,11 +402,16 @@ class LongitudinalMotion(Diagram):
                               "be >= 0")
         if not (math.isfinite(window_m) and window_m >= 0):
             raise ConfigError(f"longitudinal: window_m = {window_m!r} must be >= 0")
-        if (meet is not None) != (window_m > 0) or (meet is not None and (
+        if (spans is not None) != (window_m > 0) or (spans is not None and (
                 join is None or envelope_index is None)):
-            raise ConfigError("longitudinal: combined decisions need meet, window_m > 0, the "
+            raise ConfigError("longitudinal: combined decisions need spans, window_m > 0, the "
                               "join table and envelope_index together")
-        self._meet = meet
+        if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
+            raise ConfigError(f"longitudinal: tolerance = {tolerance!r} must be an integer >= 0")
+        self._spans = None if spans is None else [tuple(map(int, s)) for s in spans]
+        self._design_of_span = (None if spans is None
+                                else {s: i for i, s in enumerate(self._spans)})
+        self.tolerance = int(tolerance)
         self.frontier_speed_mps = (None if frontier_speed_mps is None
                                    else self.speed_command(frontier_speed_mps))
         self.window_m = float(window_m)
@@ -442,7 +452,7 @@ class LongitudinalMotion(Diagram):
     def combines(self) -> bool:
         """Decisions are combined over ``window_m``
         (:meth:`SpeedProfile.with_combined_decision`)."""
-        return self._meet is not None
+        return self._spans is not None
 
     def design_command(self, design_index: int) -> float:
         """The speed command (m/s, 0 = stop) of a design: its safe speed."""

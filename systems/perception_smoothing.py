@@ -8,6 +8,9 @@ tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult
   tested at once when n0 = 0, or those holding the top label of n0 selection samples; up to
   n estimation samples, stopping as soon as the narrowest certifiable range is decided; the
   run-time interval's range or an abstention.
+- with a robust conformal calibration (``interval: conformal``) and ``decision="sequential"``:
+  the conformal label set at budget eps, sampled only until its label range is decided
+  (:func:`~drake_cert.certification.conformal.sequential_label_set`).
 - ``decision="fixed"``: the fixed-n certificate at the observed frame
   (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation samples, joint
   Clopper-Pearson bounds at ``alpha``), from which the run-time interval of any label range
@@ -40,6 +43,11 @@ from drake_cert.certification.classifier import (
     SmoothedClassifier,
     check_enough_samples,
 )
+from drake_cert.certification.conformal import (
+    ConformalDecision,
+    RobustConformalCalibration,
+    sequential_label_set,
+)
 from drake_cert.certification.regressor import MedianSmoothedRegressor
 from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
@@ -65,6 +73,7 @@ class PerceptionResult:
     task: str  # "classify" or "regress"
     certificate: ClassCertificate | None = None  # certified classification (fixed n)
     decision: SequentialDecision | None = None  # certified classification (sequential)
+    conformal: ConformalDecision | None = None  # robust conformal label set (sequential)
     samples: int = 0  # noisy samples drawn at this tick (selection included)
     base_label: int | None = None  # raw label of f (classification, both modes)
     regression: tuple[float, float, float] | None = None  # certified (median, lower, upper)
@@ -123,6 +132,10 @@ class PerceptionSmoothing(LeafSystem):
             the decision of camera tick k is taken at ``alpha_spending.alpha(k)`` (every
             decision of the drive holds at once with probability >= 1 - its total) instead of
             ``alpha`` each; None: ``alpha`` per decision.
+        conformal: a robust conformal calibration: with ``decision="sequential"`` the tick's
+            result is the conformal label set at budget ``eps``, decided sequentially
+            (:func:`~drake_cert.certification.conformal.sequential_label_set`, at most n
+            samples); with ``"fixed"`` the certificate's votes give it downstream.
     """
 
     def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
@@ -131,7 +144,8 @@ class PerceptionSmoothing(LeafSystem):
                  offset_s: float | None = None, seed: int = 0,
                  label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
                  frame_size: int = 64, compile: bool = False, decision: str = "fixed",
-                 ranges=None, alpha_spending: AlphaSpending | None = None):
+                 ranges=None, alpha_spending: AlphaSpending | None = None,
+                 conformal: RobustConformalCalibration | None = None):
         super().__init__()
         if mode not in MODES:
             raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
@@ -148,6 +162,7 @@ class PerceptionSmoothing(LeafSystem):
         self.ranges = ranges
         self.n0, self.n = int(n0), int(n)
         self.alpha_spending = alpha_spending
+        self.conformal = conformal
         # the largest alpha a decision gets (the checks below: n must reach it)
         self.alpha = float(alpha) if alpha_spending is None else alpha_spending.planned_alpha
         self.batch_size = int(batch_size)
@@ -164,7 +179,7 @@ class PerceptionSmoothing(LeafSystem):
                     raise ConfigError("perception: classification needs label_names (>= 2)")
                 if self.decision == "fixed":
                     check_enough_samples(self.n, self.alpha, len(self.label_names))
-                else:
+                elif conformal is None:
                     check_decision_budget(self.n, self.alpha, self.eps, sigma, ranges)
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
                                                   compile=compile)
@@ -215,6 +230,11 @@ class PerceptionSmoothing(LeafSystem):
                     base_label = int(self.model(x[None]).argmax(dim=1)[0])
                 if self.mode == "base":
                     return dataclasses.replace(base, base_label=base_label)
+                if self.decision == "sequential" and self.conformal is not None:
+                    c = sequential_label_set(self._smooth, x, self.conformal, self.eps, self.n,
+                                             self.batch_size, seed=seed)
+                    return dataclasses.replace(base, base_label=base_label, conformal=c,
+                                               samples=c.samples)
                 if self.decision == "sequential":
                     ranges = self.ranges
                     if self.n0 and ranges is not None:  # those holding the selected label

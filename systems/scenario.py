@@ -26,7 +26,7 @@ from drake_cert.errors import ConfigError
 from systems.route import SegmentSpec
 
 SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "sunny_into_snow",
-                     "weather_change_in_curve")
+                     "weather_change_in_curve", "sunny_straight_to_snow", "curve_entry_changes")
 PIPELINES = ("certified", "base")
 TASKS = ("classify", "regress")
 ALPHA_SCOPES = ("decision", "drive")  # what perception.alpha bounds: each decision, or all
@@ -86,7 +86,7 @@ class PerceptionSettings:
     calibration_n: int = 500  # regression: samples per calibration frame
     alpha_c: float = 0.01  # regression: conformal miscoverage
     alpha_m: float = 0.001  # regression: level of the calibration median interval
-    precision: str = "auto"  # "auto" (bf16 only if native; DRAKE_CERT_PRECISION), fp32, bf16
+    precision: str = "auto"  # "auto" (fp32 with ONNX Runtime if installed; DESIGN 3.8), fp32, bf16
     decision: str = "auto"  # "sequential" (n: the most samples), "fixed"; auto: sequential if apt
     backend: str = "auto"  # "torch", "onnxruntime"; auto: onnxruntime if installed and fp32
     quantization: str = "none"  # "none" or "int8" (onnxruntime; the certificate is the int8 one)
@@ -98,8 +98,7 @@ class PerceptionSettings:
         """"sequential" or "fixed": what ``decision`` means for this task and interval."""
         if self.decision != "auto":
             return self.decision
-        return "sequential" if self.task == "classify" and self.interval == "safe_set" \
-            else "fixed"
+        return "sequential" if self.task == "classify" else "fixed"
 
     def validate(self, where: str) -> None:
         _one_of(self.task, TASKS, "perception.task", where)
@@ -199,6 +198,10 @@ class Scenario:
     # abstentions over shorter spans; a route with a shorter stretch (first and last
     # excepted) is refused (systems.driving.check_route_is_seen)
     min_condition_length_m: float = 60.0
+    # wrong certified decisions among the frames around any point that the combined decisions
+    # tolerate (DESIGN 6.3): a stretch is narrowed only to what every choice of this many
+    # frames left out still supports; each one costs a camera period of look-ahead
+    tolerated_wrong_frames: int = 1
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)
     perception: PerceptionSettings = dataclasses.field(default_factory=PerceptionSettings)
@@ -215,6 +218,10 @@ class Scenario:
             raise ConfigError(f"{where}: seed = {self.seed} must be >= 0 (or null)")
         _positive(self.transition_m, "transition_m", where)
         _positive(self.min_condition_length_m, "min_condition_length_m", where)
+        if isinstance(self.tolerated_wrong_frames, bool) or not isinstance(
+                self.tolerated_wrong_frames, int) or not 0 <= self.tolerated_wrong_frames <= 3:
+            raise ConfigError(f"{where}: tolerated_wrong_frames = "
+                              f"{self.tolerated_wrong_frames!r} must be an integer in 0..3")
         _non_negative(self.t_final_s, "t_final_s", where)
         if not self.route:
             raise ConfigError(f"{where}: route must list at least one segment")

@@ -31,3 +31,19 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session", autouse=True)
+def calibration_cache_in_a_temporary_folder(tmp_path_factory):
+    """Calibrations the tests compute are cached in a folder of this session, not the user's."""
+    import os
+
+    from drake_cert.certification.calibration_cache import CACHE_ENV
+
+    before = os.environ.get(CACHE_ENV)
+    os.environ[CACHE_ENV] = str(tmp_path_factory.mktemp("calibration_cache"))
+    yield
+    if before is None:
+        os.environ.pop(CACHE_ENV, None)
+    else:
+        os.environ[CACHE_ENV] = before

@@ -21,7 +21,9 @@ from drake_cert.certification.conformal import (
     RobustConformalCalibration,
     calibrate_robust_conformal,
     conformal_interval,
+    conformal_looks,
     lower_conformal_quantile,
+    sequential_label_set,
 )
 from drake_cert.certification.intervals import runtime_classification_interval
 from drake_cert.certification.statistics import clopper_pearson_one_sided
@@ -162,3 +164,38 @@ def test_label_set_hull_is_the_contiguous_friction_range():
         table.preset(PRESET).labels[0], table.preset(PRESET).labels[2]}
     assert ci.labels == tuple(table.preset(PRESET).labels)  # sunny..heavy rain
     assert ci.interval == table.envelope(PRESET)
+
+
+def test_the_sequential_set_keeps_the_coverage_and_stops_early_where_the_range_is_decided(setup):
+    # The set decided sequentially (DESIGN 3.6): the true label's bound at beta_test / J per
+    # look holds at every look at once, so the set holds the true label whatever look it stops.
+    smooth, calibration = setup
+    eps = 0.25
+    images, labels, stiffness = make_frames(60, seed=3)
+    table = load_conditions()
+    misses, samples, fixed_misses = 0, [], 0
+    for sign in (0.0, 1.0, -1.0):
+        seen = shift(images, eps, sign) if sign else images
+        for i in range(len(seen)):
+            d = sequential_label_set(smooth, seen[i], calibration, eps, 1000, 1000,
+                                     seed=10_000 * int(sign + 1) + i)
+            lo, hi = conformal_interval(d, calibration, table, PRESET, eps).interval
+            misses += not lo <= stiffness[i] <= hi
+            samples.append(d.samples)
+            assert d.looks == conformal_looks(1000) and d.reason in ("narrowest", "settled",
+                                                                      "n_max")
+            fixed = smooth.sample_counts(seen[i], 1000, 1000, None)
+            lo, hi = conformal_interval(fixed, calibration, table, PRESET, eps).interval
+            fixed_misses += not lo <= stiffness[i] <= hi
+    # 540 frames at a guaranteed miss rate <= 1 %: more than 13 misses has probability < 0.01
+    assert binom.sf(13, 540, calibration.alpha_total) < 0.01
+    assert misses <= 13 and fixed_misses <= 13
+    # the analytic classifier is unanimous on most frames: their range is decided early
+    assert np.median(samples) <= 128 and max(samples) <= 1000
+
+
+def test_conformal_looks_double_up_to_the_most_samples():
+    assert conformal_looks(1000) == (64, 128, 256, 512, 1000)
+    assert conformal_looks(64) == (64,) and conformal_looks(50) == (50,)
+    with pytest.raises(CertificationError):
+        conformal_looks(0)

@@ -297,3 +297,91 @@ def test_a_diverged_drive_is_not_in_its_lane():
     tape = hand_tape([50e3] * 4, [40e3] * 4, [60e3] * 4, [10.0] * 4, [12.0] * 4)
     tape.states[2, 0] = np.nan
     assert time_left_lane(tape) == pytest.approx(tape.times_s[2])
+
+
+def inject_wrong_frame(built, wrong_label: str, where) -> dict:
+    """Make the certified-interval block certify ``wrong_label`` (a label the frame does not
+    show) for the first good frame whose look point satisfies ``where(position_m)``: a frame
+    certified wrong, as when g is wrong on the clean frame or a certificate fails. Returns a
+    dict that receives the tick and the true label of that frame."""
+    block = built.systems["interval"]
+    original, done = block.request, {}
+
+    def request(p):
+        if p.frame_ok and not done and where(p.position_m):
+            done.update(tick=p.tick, true_label=block.label_names[p.label_index])
+            return block._decision(p, block._by_labels[(wrong_label,)], "certified", 2.0)
+        return original(p)
+
+    block.request = request
+    return done
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name, attack, wrong, where", [
+    # a clean sunny frame certified {snow} on the straight before the snow
+    ("sunny_straight_to_snow", "none", "snow", lambda x: 140.0 <= x < 160.0),
+    # the first rain frame after a curve entry certified {sunny} (attacked rain frame)
+    ("curve_entry_changes", "sa", "sunny", lambda x: 90.0 <= x < 95.0),
+])
+def test_an_injected_wrong_frame_leaves_the_design_in_force_on_the_truth(setup, name, attack,
+                                                                         wrong, where):
+    # One wrong certified frame among right ones is within the rule's tolerance (DESIGN 6.3):
+    # the design in force holds the stiffness under the car all along.
+    scenario = with_overrides(load_scenario(name), pipeline="certified", attack=attack)
+    built = build_certified_driving_diagram(scenario, **setup)
+    injected = inject_wrong_frame(built, wrong, where)
+    s = drive(built).summary
+    assert injected and injected["true_label"] != wrong, injected
+    assert not s["left_lane"] and s["ending"] == "route end", s
+    assert s["time_unprotected_s"] == 0.0 and s["design_covers_true_fraction"] == 1.0, s
+
+
+def test_the_guarantee_failure_bound_counts_every_frame_the_rule_uses():
+    # DESIGN 6.2: E[wrong frames] <= A + P m; more than j of them is needed for the design in
+    # force to miss, so P(miss) <= (A + P m) / (j + 1) (Markov), computed from the plan.
+    from systems.driving import guarantee_failure_bound, guarantee_summary
+
+    class Design:  # only the speeds matter to the plan
+        def __init__(self, speed):
+            self.speed_mps, self.has_safe_speed = speed, True
+
+    class Calibration:
+        alpha_total = 0.01
+
+    table = [Design(19.4), Design(16.0), Design(6.2)]
+    sc = load_scenario("dry_to_snow")
+    safe = guarantee_summary(sc, table)
+    assert safe["interval"] == "safe_set" and safe["standing_assumption"] is True
+    assert safe["frame_miscoverage"] == 0.0 and safe["tolerated_wrong_frames"] == 1
+    assert safe["guarantee_failure_bound"] == pytest.approx(sc.perception.alpha / 2)
+    conformal = dataclasses.replace(sc, perception=dataclasses.replace(
+        sc.perception, interval="conformal"))
+    g = guarantee_summary(conformal, table, Calibration())
+    assert g["standing_assumption"] is False and g["interval"] == "conformal"
+    planned = g["planned_ticks"]
+    assert guarantee_failure_bound(conformal, planned, 0.01) == min(
+        1.0, (sc.perception.alpha + planned * 0.01) / 2)
+    small = guarantee_failure_bound(conformal, 10, 1e-4)
+    assert small == pytest.approx((0.01 + 10 * 1e-4) / 2)
+    strict = dataclasses.replace(conformal, tolerated_wrong_frames=0)
+    assert guarantee_failure_bound(strict, 10, 1e-4) == pytest.approx(0.01 + 10 * 1e-4)
+    per_decision = dataclasses.replace(sc, perception=dataclasses.replace(
+        sc.perception, alpha_scope="decision", alpha=0.001))
+    assert guarantee_failure_bound(per_decision, 100, 0.0) == pytest.approx(0.1 / 2)
+    base = with_overrides(sc, pipeline="base")
+    assert guarantee_summary(base, table)["guarantee_failure_bound"] is None
+
+
+def test_a_regression_drive_whose_calibration_gives_the_envelope_says_so():
+    import math
+
+    from systems.driving import _calibration_warnings
+
+    sc = load_scenario("dry_to_snow")
+    regress = dataclasses.replace(sc, perception=dataclasses.replace(sc.perception,
+                                                                     task="regress"))
+    (warning,) = _calibration_warnings(regress, math.inf)
+    assert "20 calibration frames per label" in warning and "at least 99" in warning
+    assert _calibration_warnings(regress, 4000.0) == []
+    assert _calibration_warnings(sc, math.inf) == []  # classification: no regression beta

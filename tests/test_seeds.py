@@ -17,8 +17,10 @@ from drake_cert.certification.seeds import (
     stream_seed,
     stream_sequence,
     streams,
+    torch_generator,
 )
 from drake_cert.errors import CertificationError
+from drake_cert.rng import MT_WORDS, mt19937_words
 
 
 @pytest.mark.parametrize("root", [0, 12345])
@@ -41,13 +43,93 @@ def test_distinct_purposes_never_share_a_stream():
     # Distinct seeds could still give overlapping generator output if they were offsets of
     # one another in a shared sequence; SeedSequence hashes them. The first 64 normals of
     # every purpose at a few keys share no value between any two streams.
-    draws = np.array([torch.randn(64, generator=torch.Generator().manual_seed(
-        child_seed(0, p, k))).numpy() for p in Purpose for k in range(5)])
+    draws = np.array([torch.randn(64, generator=torch_generator(child_seed(0, p, k))).numpy()
+                      for p in Purpose for k in range(5)])
     same = (draws[:, None, :] == draws[None, :, :]).any(axis=2)
     np.fill_diagonal(same, False)
     assert not same.any()
     # A purpose is a name: its string and its member are the same stream.
     assert child_seed(3, "camera", 7) == child_seed(3, Purpose.CAMERA, 7)
+
+
+def test_seeds_that_share_their_low_32_bits_draw_different_noise():
+    """torch's manual_seed keeps 32 bits of a seed on CPU: with root 1 the attack stream of
+    tick 14383 and the estimation stream of tick 37288 drew the same noise. Not any more."""
+    attack = child_seed(1, Purpose.ATTACK, 14383)
+    estimation = child_seed(1, Purpose.ESTIMATION, 37288)
+    assert attack != estimation and attack % 2**32 == estimation % 2**32  # the old collision
+    assert torch.equal(torch.randn(64, generator=torch.Generator().manual_seed(attack)),
+                       torch.randn(64, generator=torch.Generator().manual_seed(estimation)))
+    for a, b in ((attack, estimation), (5, 5 ^ 2**40), (2**62 + 9, 9)):
+        first = torch.randn(64, generator=torch_generator(a))
+        second = torch.randn(64, generator=torch_generator(b))
+        assert not torch.isin(first, second).any()
+
+
+def test_a_seed_always_draws_the_same_noise_from_the_state_it_installed():
+    """Same seed, same draws (normals, uniforms, permutations); the installed state is
+    mt19937_words(seed), and the first raw draws are mt19937's outputs from that state."""
+    for seed in (0, 7, 2**40 + 3, 2**63 - 1, 2**64 - 1):
+        a, b = torch_generator(seed), torch_generator(seed)
+        assert a.initial_seed() == seed
+        assert torch.equal(torch.randn(1000, generator=a), torch.randn(1000, generator=b))
+        assert torch.equal(torch.rand(7, dtype=torch.float64, generator=a),
+                           torch.rand(7, dtype=torch.float64, generator=b))
+        assert torch.equal(torch.randperm(50, generator=a), torch.randperm(50, generator=b))
+        state = torch_generator(seed).get_state().numpy().tobytes()
+        assert np.array_equal(np.frombuffer(state, "<u8", MT_WORDS, 24), mt19937_words(seed))
+        # int32 random_() draws mt19937's tempered output masked to 31 bits; numpy's MT19937
+        # started from the same words (pos 624: twist first) gives the reference outputs.
+        reference = np.random.MT19937()
+        reference.state = {"bit_generator": "MT19937",
+                           "state": {"key": mt19937_words(seed), "pos": MT_WORDS}}
+        raw = torch.empty(700, dtype=torch.int32).random_(generator=torch_generator(seed))
+        assert (raw.numpy() == (reference.random_raw(700) & 0x7FFFFFFF)).all()  # past a twist
+    assert not torch.equal(torch.randn(64, generator=torch_generator(1)),
+                           torch.randn(64, generator=torch_generator(2)))
+    with pytest.raises(CertificationError, match="seed"):
+        torch_generator(-1)
+    with pytest.raises(CertificationError, match="seed"):
+        torch_generator(2**64)
+
+
+def test_an_unexpected_generator_state_layout_is_refused(monkeypatch):
+    """On a torch whose CPU state is laid out otherwise, torch_generator raises rather than
+    installing words where they do not belong (or falling back to 32-bit seeds)."""
+    from drake_cert import rng
+
+    rng._cpu_state_template.cache_clear()
+    monkeypatch.setattr(rng, "_CPU_WORDS_AT", 16)  # words where `next` is
+    try:
+        with pytest.raises(CertificationError, match="layout"):
+            torch_generator(3)
+    finally:
+        monkeypatch.undo()
+        rng._cpu_state_template.cache_clear()
+    assert torch_generator(3).initial_seed() == 3
+
+
+def _distinct_streams(keys: int) -> list[int]:
+    """Streams attack and estimation of root 1 at ticks 0..keys/2 - 1 (``keys`` streams): no
+    two share a 63-bit seed, nor the first four words of their generator state (the low 32
+    bits of the seeds, which manual_seed kept, collide about keys^2 / 2^33 times)."""
+    seeds = [child_seed(1, purpose, tick) for purpose in (Purpose.ATTACK, Purpose.ESTIMATION)
+             for tick in range(keys // 2)]
+    words = np.array([np.random.SeedSequence(s).generate_state(4) for s in seeds])
+    assert np.array_equal(words[:3], np.array([mt19937_words(s)[:4] for s in seeds[:3]]))
+    assert len(set(seeds)) == keys
+    assert len(np.unique(words, axis=0)) == keys
+    return seeds
+
+
+def test_100_000_streams_have_distinct_generator_states():
+    seeds = _distinct_streams(100_000)
+    assert len({s % 2**32 for s in seeds}) < 100_000  # 32-bit seeds would have collided
+
+
+@pytest.mark.slow
+def test_1_000_000_streams_have_distinct_generator_states():
+    _distinct_streams(1_000_000)
 
 
 def test_a_stream_is_the_spawned_child_of_its_root():

@@ -31,6 +31,7 @@ import torch
 from scipy.stats import beta as beta_dist
 
 from drake_cert.errors import CertificationError
+from drake_cert.rng import torch_generator
 
 ATTACKS = ("sa", "ea")
 REGRESSION_TARGETS = ("median", "central", "mean")
@@ -94,13 +95,12 @@ class FrameNoise:
     def __init__(self, seed: int, batch: int, device: torch.device,
                  frame_seeds: Sequence[int] | None = None):
         if frame_seeds is None:
-            self.generators = [torch.Generator(device=device).manual_seed(int(seed))]
+            self.generators = [torch_generator(int(seed), device)]
             self.per_frame = False
         else:
             if len(frame_seeds) != batch:
                 raise CertificationError(f"{len(frame_seeds)} frame seeds for {batch} frames")
-            self.generators = [torch.Generator(device=device).manual_seed(int(s))
-                               for s in frame_seeds]
+            self.generators = [torch_generator(int(s), device) for s in frame_seeds]
             self.per_frame = True
         self.device = device
 

@@ -197,6 +197,89 @@ def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Ten
 
 
 @dataclasses.dataclass(frozen=True)
+class ConformalDecision:
+    """Outcome of :func:`sequential_label_set`: the robust conformal label set at one observed
+    frame, decided sequentially.
+
+    ``label_set``: ``C(x')`` (label indices), from the bounds of the look it stopped at;
+    ``counts``: the votes drawn; ``samples``: their number; ``looks``: the looks planned (each
+    label's upper bound is taken at ``beta_test / len(looks)`` at every look); ``reason``:
+    "narrowest" (one label), "settled" (both ends of the label range are in the set at the
+    settling level: more samples would not narrow it), "n_max" (the last look).
+    """
+
+    label_set: tuple[int, ...]
+    counts: np.ndarray
+    samples: int
+    looks: tuple[int, ...]
+    beta_test: float
+    reason: str
+
+
+def conformal_looks(n_max: int, first_look: int = 64) -> tuple[int, ...]:
+    """Sample sizes at which :func:`sequential_label_set` looks: ``first_look`` doubling up to
+    ``n_max`` (the last look is ``n_max``)."""
+    check_count(n_max, "n_max")
+    check_count(first_look, "first_look")
+    looks, n = [], min(int(first_look), int(n_max))
+    while n < n_max:
+        looks.append(n)
+        n *= 2
+    looks.append(int(n_max))
+    return tuple(looks)
+
+
+def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
+                         calibration: RobustConformalCalibration, eps: float, n_max: int,
+                         batch_size: int, *, seed: int | None = None, first_look: int = 64,
+                         settle_level: float = 0.01) -> ConformalDecision:
+    """The robust conformal label set ``C(x')`` at the observed frame ``x`` (budget ``eps``),
+    drawing samples only until the set's label range is decided (DESIGN 3.6, 3.7).
+
+    At looks fixed in advance (:func:`conformal_looks`) each label's Clopper-Pearson upper
+    bound is taken at ``beta_test / J`` for J looks, so the TRUE label's bound holds at every
+    look at once with probability at least ``1 - beta_test`` (union bound over the looks; the
+    other labels' bounds need not hold: a label wrongly kept only widens the set). Step (d) of
+    the module's argument therefore holds at whichever look it stops, and the coverage stays
+    ``1 - alpha_total``. It stops at the first look where the set's range is one label, or
+    where both end labels of the range have a lower bound (at ``settle_level``; a stopping
+    rule only, no guarantee rests on it) above their threshold, or at ``n_max``.
+    """
+    check_count(batch_size, "batch_size")
+    check_alpha(settle_level, "settle_level")
+    if not (math.isfinite(eps) and eps >= 0):
+        raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
+    if classifier.num_classes != calibration.num_classes:
+        raise CertificationError(f"a classifier over {classifier.num_classes} labels with a "
+                                 f"calibration over {calibration.num_classes}")
+    looks = conformal_looks(n_max, first_look)
+    level = calibration.beta_test / len(looks)
+    k = calibration.num_classes
+    thresholds = np.array([calibration.threshold(lab, eps) for lab in range(k)])
+    counts = np.zeros(k, dtype=np.int64)
+    gen = make_generator(seed, classifier.device)
+    members, reason = np.zeros(k, dtype=bool), "n_max"
+    for look in looks:
+        drawn = int(counts.sum())
+        counts += classifier.sample_counts(x, look - drawn, batch_size, gen)
+        up = clopper_pearson_one_sided(counts, look, level)[1]
+        members = up >= thresholds
+        inside = np.flatnonzero(members)
+        if len(inside) == 0:
+            continue
+        lo, hi = int(inside[0]), int(inside[-1])
+        if lo == hi:
+            reason = "narrowest"
+            break
+        low = clopper_pearson_one_sided(counts[[lo, hi]], look, settle_level)[0]
+        if low[0] >= thresholds[lo] and low[1] >= thresholds[hi]:
+            reason = "settled"
+            break
+    return ConformalDecision(tuple(int(i) for i in np.flatnonzero(members)), counts,
+                             int(counts.sum()), looks, float(calibration.beta_test), reason)
+
+
+@dataclasses.dataclass(frozen=True)
 class ConformalInterval(StiffnessBounds):
     """Robust conformal stiffness interval at an observed frame (N/rad).
 
@@ -212,16 +295,18 @@ class ConformalInterval(StiffnessBounds):
     alpha_total: float
 
 
-def conformal_interval(counts: Sequence[int] | np.ndarray | ClassCertificate,
+def conformal_interval(counts: Sequence[int] | np.ndarray | ClassCertificate | ConformalDecision,
                        calibration: RobustConformalCalibration, table, preset: str, eps: float,
                        label_names: Sequence[str] | None = None) -> ConformalInterval:
     """The robust conformal stiffness interval at an observed frame (see module doc).
 
     ``counts`` are the n estimation votes at the observed frame (or a
-    :class:`ClassCertificate`, whose counts are used: the same samples serve both intervals).
+    :class:`ClassCertificate`, whose counts are used: the same samples serve both intervals),
+    or a :class:`ConformalDecision` (its label set, decided sequentially).
     The label set is widened to the contiguous friction range from its first to its last
     label (presets list labels in friction order) and the interval is that range's hull.
     """
+    decided = counts.label_set if isinstance(counts, ConformalDecision) else None
     if isinstance(counts, ClassCertificate):
         counts = counts.counts
     names = list(label_names) if label_names is not None else list(table.preset(preset).labels)
@@ -229,7 +314,8 @@ def conformal_interval(counts: Sequence[int] | np.ndarray | ClassCertificate,
     if len(names) != calibration.num_classes:
         raise CertificationError(f"{len(names)} label names for a calibration over "
                                  f"{calibration.num_classes} labels")
-    chosen = [names[i] for i in calibration.label_set(counts, eps)]
+    members = decided if decided is not None else calibration.label_set(counts, eps)
+    chosen = [names[i] for i in members]
     missing = [c for c in chosen if c not in family]
     if missing:
         raise CertificationError(f"labels {missing} are not in preset {preset!r} ({family})")

@@ -10,6 +10,15 @@ so two streams that differ in purpose or key are statistically independent, and 
 their 63-bit seeds differ (tested over many keys). Same root, purpose and keys: the same
 draws, on any machine.
 
+Draws come from :func:`torch_generator` (:mod:`drake_cert.rng`, re-exported here) or a numpy
+Generator, never from ``torch.Generator().manual_seed``: torch's CPU generator (mt19937) keeps
+only the low 32 bits of a seed, so seeds that differ above bit 31 drew identical noise (with
+root 1, the attack stream of tick 14383 was the estimation stream of tick 37288).
+:func:`torch_generator` fills the whole mt19937 state (624 words) from ``SeedSequence(seed)``,
+so a stream's generator state depends on every bit of its 63-bit seed, and streams with
+different keys draw different noise (their seeds and first state words are tested distinct
+over 10^6 keys). Other devices (CUDA's Philox) take all 64 bits of ``manual_seed``.
+
 Who uses which purpose (keys in parentheses; a root is a user's seed or a seed derived here):
 
 - the driving Diagram (root: the scenario's seed): ``route`` (segment), ``camera`` (tick),
@@ -45,6 +54,8 @@ import struct
 import numpy as np
 
 from drake_cert.errors import CertificationError
+from drake_cert.rng import mt19937_words as mt19937_words
+from drake_cert.rng import torch_generator as torch_generator
 
 
 class Purpose(enum.Enum):
@@ -106,13 +117,13 @@ def child_sequence(root: int, purpose: Purpose | str, *keys: int) -> np.random.S
 
 
 def seed_from_sequence(sequence: np.random.SeedSequence) -> int:
-    """A 63-bit integer seed (fits ``torch.Generator.manual_seed`` and numpy)."""
+    """A 63-bit integer seed (for :func:`torch_generator` and numpy)."""
     return int(sequence.generate_state(1, dtype=np.uint64)[0] >> np.uint64(1))
 
 
 def child_seed(root: int, purpose: Purpose | str, *keys: int) -> int:
     """The 63-bit integer seed of stream (purpose, keys) of ``root`` (for
-    ``torch.Generator().manual_seed`` or ``numpy.random.default_rng``)."""
+    :func:`torch_generator` or ``numpy.random.default_rng``)."""
     return seed_from_sequence(child_sequence(root, purpose, *keys))
 
 

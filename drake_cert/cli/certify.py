@@ -75,8 +75,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "of --preset; resized to the model's size) instead of the "
                              "synthetic test split (default: the test split)")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
-                        help="model arithmetic (auto: bf16 where the CPU has it natively, else "
-                             "fp32; DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means); "
+                        help="model arithmetic (auto: fp32 where ONNX Runtime is installed, else "
+                             "bf16 where the CPU has it natively, else fp32; "
+                             "DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means); "
                              "certificates are those of the model as evaluated")
     parser.add_argument("--conformal", action="store_true",
                         help="classify: also the robust conformal interval (holds the true "

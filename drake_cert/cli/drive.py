@@ -21,7 +21,8 @@ ATTACKS = ("none", "sa", "ea", "nan", "misshaped")
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scenario", default="dry_to_snow", metavar="NAME|FILE",
                         help="shipped scenario name (dry_to_snow, rain_route, road_surface, "
-                             "sunny_into_snow, weather_change_in_curve) or a scenario YAML "
+                             "sunny_into_snow, weather_change_in_curve, sunny_straight_to_snow,"
+                             " curve_entry_changes) or a scenario YAML "
                              "file")
     parser.add_argument("--pipeline", choices=PIPELINES, default=None,
                         help="certified (smoothed g, certificate) or base (raw f); default: "
@@ -216,11 +217,16 @@ def _drive_with_bar(choices: dict, common: dict, position: int):
     retain_freed_memory()  # a --compare worker process runs this, not cli.main
     scenario = _scenario_for(**choices)
 
+    def calibration_bar(frames):
+        return progress_bar(frames, unit="frame", position=position, leave=False,
+                            desc=f"{scenario.name}: calibrating the conformal set")
+
     horizon = scenario.route_length_m / 10.0  # a guess; the bar grows past it if needed
     with progress_bar(total=round(horizon, 1), unit="sim s", position=position,
                       desc=f"{scenario.name} {scenario.perception.pipeline}",
                       bar_format="{l_bar}{bar}| {n:.1f} sim s [{elapsed}]") as bar:
-        return drive_scenario(scenario, progress=bar.update, **common)
+        return drive_scenario(scenario, progress=bar.update,
+                              calibration_progress=calibration_bar, **common)
 
 
 def format_summaries(summaries: list[dict]) -> str:
@@ -232,7 +238,9 @@ def format_summaries(summaries: list[dict]) -> str:
             ("design_covers_true_fraction", "{:.3f}"), ("time_unprotected_s", "{:.2f}"),
             ("abstention_fraction", "{:.3f}"), ("envelope_fraction", "{:.3f}"),
             ("envelope_time_fraction", "{:.3f}"),
-            ("certificate_failure_bound", "{:.4f}"), ("design_switches", "{}"),
+            ("certificate_failure_bound", "{:.4f}"), ("interval", "{}"),
+            ("tolerated_wrong_frames", "{}"), ("guarantee_failure_bound", "{:.4f}"),
+            ("design_switches", "{}"),
             ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
             ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
             ("backend", "{}"))
@@ -251,6 +259,12 @@ def format_summaries(summaries: list[dict]) -> str:
             cells.append("-" if v is None else fmt.format(v))
         lines.append(f"  {key:<30}" + "".join(f"{c:>14}" for c in cells))
     for s in summaries:
+        for warning in s.get("warnings") or ():
+            lines.append(f"  WARNING: {s['pipeline']}: {warning}")
+        if s.get("standing_assumption"):
+            lines.append(f"  NOTE: {s['pipeline']} ({s['interval']} interval): the guarantee "
+                         "assumes the smoothed classifier right on the clean frame (the "
+                         "standing assumption, DESIGN 3.4); --interval conformal drops it")
         if not s.get("attack_within_certified_budget", True):
             lines.append(f"  WARNING: {s['pipeline']}: attack budget {s['attack_eps']:g} exceeds "
                          f"the certified eps {s['certified_eps']:g}: no certificate covers it")

@@ -55,7 +55,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "--port PORT`), auto, or ray://host:10001")
     parser.add_argument("--precision", choices=("auto", "fp32", "bf16"), default="auto",
                         help="model arithmetic of attacks, certificates and calibration (auto: "
-                             "bf16 where the CPU has it natively, else fp32; the environment "
+                             "fp32 where ONNX Runtime is installed, else bf16 where the CPU has "
+                             "it natively, else fp32; the environment "
                              "variable DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means)")
     parser.add_argument("--budget-min", type=float, default=None,
                         help="start no new frame after this many minutes; write the tables of "

@@ -12,7 +12,8 @@ streams derived from ``(seed, split, label)`` (numpy ``SeedSequence``), so they 
 and each is reproducible on its own. Generated splits are kept in a small in-memory cache and
 on disk (8-bit ``.npz``) under ``$DRAKE_CERT_DATA_CACHE`` (default: ``data_cache/`` of the
 source checkout, git-ignored; an empty value disables it); a file's name carries a hash of
-the generator's source, so a changed generator never reads stale frames.
+the generator's source (``frames.py`` and ``rng.py``), so a changed generator never
+reads stale frames.
 """
 
 from __future__ import annotations
@@ -109,7 +110,9 @@ def _disk_cache_file(key: tuple) -> Path | None:
     folder = disk_cache_dir()
     if folder is None:
         return None
-    source = (Path(__file__).parent / "frames.py").read_bytes()
+    package = Path(__file__).parents[1]  # the renderer and the generators it draws from
+    source = b"".join((package / name).read_bytes()
+                      for name in ("perception/frames.py", "rng.py"))
     digest = hashlib.sha256(source + repr(key).encode()).hexdigest()[:20]
     return folder / f"{key[0]}_{key[1]}_{digest}.npz"
 

@@ -37,6 +37,7 @@ import torch.nn.functional as F
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from drake_cert.perception.frameset import FrameSet
+from drake_cert.rng import torch_generator
 
 CHUNK = 250  # frames rendered per batch
 TEXTURE = 64  # side of the periodic noise textures
@@ -125,7 +126,7 @@ def generate_frames(conditions_table: ConditionsTable, preset: str, *, seed: int
     for k, cond in enumerate(conditions_table.preset_conditions(preset)):
         style = style_for(cond.name)
         ss = np.random.SeedSequence([int(seed), k, _label_key(cond.name)])
-        gen = torch.Generator().manual_seed(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
+        gen = torch_generator(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
         lo, hi = cond.interval
         for start in range(0, count, CHUNK):
             b = min(CHUNK, count - start)

@@ -30,6 +30,7 @@ from tqdm import tqdm
 from drake_cert.io import atomic_write_bytes
 from drake_cert.perception.frameset import FrameSet
 from drake_cert.perception.models import SmallResNet, StiffnessRegressor
+from drake_cert.rng import torch_generator
 
 STIFFNESS_UNIT = 1.0e5  # N/rad; regression targets are fitted in this unit
 
@@ -60,7 +61,7 @@ def learning_rate_at(step: int, total_steps: int, config: TrainConfig) -> float:
 def epoch_generator(seed: int, epoch: int) -> torch.Generator:
     """The random stream of one epoch (order, flips, noise)."""
     ss = np.random.SeedSequence([int(seed), 0xE90C, int(epoch)])
-    return torch.Generator().manual_seed(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
+    return torch_generator(int(ss.generate_state(1, dtype=np.uint64)[0] >> 1))
 
 
 def add_gaussian_noise(x: torch.Tensor, sigma: float, generator: torch.Generator | None
