@@ -14,7 +14,7 @@ World assumption: no interior stretch of one road condition is as short as ``win
 
 Rule (:func:`tolerant_span`). For the road between two consecutive look points, take the
 informative looks (span narrower than the envelope) at or before its start (``left``) and at or
-after its end (``right``), up to ``per_side`` on each side, the nearest first; a *pair* is one
+after its end (``right``), up to :data:`PER_SIDE` on each side, the nearest first; a *pair* is one
 look of each side less than ``window_m`` apart. For a set E of looks, ``M_E`` is the
 intersection of the hulls of the pairs that avoid E (the envelope if no pair does). The stretch
 gets the hull of every non-empty ``M_E`` over the sets E of at most ``tolerance`` looks; the
