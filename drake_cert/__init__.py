@@ -31,6 +31,7 @@ _PUBLIC = {
     "metrics": "drake_cert.metrics",
     # synthesis
     "synthesize_design": "synthesis.table",
+    "synthesize_label_range": "synthesis.table",
     "synthesize_table": "synthesis.table",
     "ControllerDesign": "synthesis.design",
     "load_design_file": "synthesis.design_io",

@@ -90,6 +90,11 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
                       cache: DesignCache | None = None) -> ControllerDesign:
     """Gains, filter gain and safe speed for one stiffness interval (N/rad) and friction.
 
+    ``interval`` is the cornering stiffness of THIS vehicle's tires on the road (the design
+    model's C). For a label range of the conditions table on a vehicle whose tires differ from
+    the table's (``tire_stiffness_scale`` != 1), :func:`synthesize_label_range` applies the
+    vehicle's tires and gives the design the command line writes.
+
     ``labels``: the label names of the range ([] for a regression interval). The tire slip
     bound z_b widens the certified interval to ``[C_lo (1 - z_b + z_b^2/3), C_hi]`` (the
     Fiala secant stiffness) and caps the grip speed; the bounds of
@@ -160,6 +165,29 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
     )
 
 
+def synthesize_label_range(vehicle: VehicleParams, conditions: ConditionsTable, labels,
+                           settings: Settings, cache: DesignCache | None = None
+                           ) -> ControllerDesign:
+    """The design ``drake-cert synthesize`` writes for the label range ``labels`` (names,
+    grippiest first, e.g. ``["rain", "snow"]``) and this vehicle: the range's stiffness hull in
+    the conditions table times the vehicle's ``tire_stiffness_scale`` (the tires the vehicle
+    has), and the range's least friction. :class:`ConfigError` names the ranges the table
+    defines when ``labels`` is not one of them.
+
+    :func:`synthesize_design` takes the interval of the vehicle's own tires; this function
+    applies the vehicle file's tires to the road conditions, as the design table does.
+    """
+    labels = tuple(labels)
+    ranges = design_label_ranges(conditions)
+    if labels not in ranges:
+        raise ConfigError(f"label range {'+'.join(labels) or '(empty)'} is not one the "
+                          f"conditions table defines (contiguous runs of a preset's labels, "
+                          f"grippiest first): {', '.join('+'.join(r) for r in ranges)}")
+    scaled = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
+    return synthesize_design(vehicle, scaled.hull(labels), scaled.least_friction(labels),
+                             settings, labels, cache)
+
+
 def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
                      progress: Callable[[Iterable], Iterable] | None = None
                      ) -> list[ControllerDesign]:
@@ -168,12 +196,7 @@ def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settin
     ``progress`` wraps the iteration over label ranges (e.g. ``tqdm``). The label intervals
     are the table's times ``vehicle.tire_stiffness_scale`` (friction unchanged).
     """
-    conditions = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
     cache = DesignCache()
-    designs = []
     ranges = design_label_ranges(conditions)
-    for labels in (progress(ranges) if progress is not None else ranges):
-        designs.append(synthesize_design(vehicle, conditions.hull(labels),
-                                         conditions.least_friction(labels), settings,
-                                         labels, cache))
-    return designs
+    return [synthesize_label_range(vehicle, conditions, labels, settings, cache)
+            for labels in (progress(ranges) if progress is not None else ranges)]

@@ -190,6 +190,9 @@ class VerificationReport:
             "ok": self.ok,
             "checked_against": self.checked_against,
             "input_failures": named(self.input_failures),
+            "safe_speed_claims": sum(d.speed_mps > 0 for d in self.designs),
+            "no_safe_speed_claims": [d.label_range for d in self.designs
+                                     if not d.speed_mps > 0],
             "designs": [{
                 "index": d.index, "labels": list(d.labels), "label_range": d.label_range,
                 "interval_n_per_rad": [float(x) for x in d.interval_n_per_rad],

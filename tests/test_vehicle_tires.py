@@ -5,9 +5,10 @@ import dataclasses
 import pytest
 
 from drake_cert.config import default_path, load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
 from drake_cert.io import provenance
 from synthesis.design_io import DesignTable
-from synthesis.table import synthesize_table
+from synthesis.table import synthesize_label_range, synthesize_table
 from synthesis.verify import verify_design_table
 
 CONDITIONS = load_conditions()
@@ -40,6 +41,19 @@ def test_designs_are_synthesized_and_verified_on_the_scaled_intervals():
     unscaled = DesignTable([design], dataclasses.replace(SUV, tire_stiffness_scale=1.0),
                            SETTINGS, provenance(seed=None, command=["pytest"]), conditions)
     assert not verify_design_table(unscaled).ok
+
+
+def test_the_api_designs_a_label_range_for_the_vehicles_own_tires_as_the_cli_does():
+    """synthesize_label_range on a scaled vehicle gives the design table's design (what
+    `drake-cert synthesize` writes) for that range, not the design of the table's tires."""
+    conditions = _heavy_rain_only(CONDITIONS)
+    (from_table,) = synthesize_table(SUV, conditions, SETTINGS)
+    design = synthesize_label_range(SUV, CONDITIONS, ["heavy_rain"], SETTINGS)
+    assert dataclasses.asdict(design) == dataclasses.asdict(from_table)
+    lo, _ = CONDITIONS.condition("heavy_rain").interval
+    assert design.stiffness_lo_n_per_rad == pytest.approx(SUV.tire_stiffness_scale * lo)
+    with pytest.raises(ConfigError, match=r"sunny\+snow is not one the conditions table"):
+        synthesize_label_range(SUV, CONDITIONS, ["sunny", "snow"], SETTINGS)
 
 
 @pytest.fixture(scope="module")

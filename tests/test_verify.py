@@ -45,7 +45,7 @@ def test_synthesized_table_round_trips_and_passes_verify(default_design_table, t
     assert yaml.safe_load(table_file.read_text())["schema_version"] == 3
     assert cli.main(["verify", str(table_file)]) == 0
     out = capsys.readouterr()
-    assert "all 20 designs hold" in out.err
+    assert "20 claims hold: 20 safe speeds, 0 ranges certified to have none" in out.err
     assert "l1_condition=" in out.out and "steady_state_lane_margin_m=" in out.out
     # no reference files: checked against the file's own inputs, completeness not checked
     assert "own embedded vehicle, settings and conditions" in out.err
@@ -223,7 +223,8 @@ def test_verify_against_reference_files_passes_an_untouched_table_and_reports_js
     assert cli.main(["verify", str(table_file), "--json", *_references()]) == 0
     out = capsys.readouterr()
     assert "checked against the reference vehicle, settings, conditions" in out.err
-    assert ("all 20 designs hold; complete: a design for each of the 20 label ranges of the "
+    assert ("20 claims hold: 20 safe speeds, 0 ranges certified to have none; complete: a "
+            "design for each of the 20 label ranges of the "
             "reference conditions") in out.err
     report = json.loads(out.out)
     assert report["verdict"] == "pass" and report["ok"] is True
@@ -261,10 +262,11 @@ def test_a_cut_table_fails_completeness_unless_told_not_to_check_it(table_file, 
             "(preset weather)\n") in err
     assert ("drake-cert verify: incomplete table: no design for label range sunny "
             "(presets carla-like, robotcar-like, weather)\n") in err
-    assert "designs hold" not in err
+    assert "claims hold" not in err
     assert cli.main(["verify", path, "--conditions", _shipped("conditions.yaml"),
                      "--no-complete"]) == 0
-    assert "all 1 designs hold\n" in capsys.readouterr().err
+    assert "1 claim holds: 1 safe speed, 0 ranges certified to have none\n" in \
+        capsys.readouterr().err
     assert cli.main(["verify", path, "--complete"]) == 1  # against the embedded conditions
     assert capsys.readouterr().err.count("incomplete table: no design for label range") == 19
 
@@ -373,3 +375,17 @@ def test_the_old_margin_name_in_a_schema_3_file_is_one_line_exit_2(table_file, t
     assert len(err.splitlines()) == 1
     assert ("margins: unknown key 'steady_state_offset_m' (schema 3 calls it "
             "'steady_state_lane_margin_m')") in err
+
+
+def test_the_summary_separates_safe_speeds_from_ranges_certified_to_have_none():
+    """A design with no safe speed is a claim that holds ("the car stops there"), but a reader
+    must not take it for a usable design: the summary counts the two kinds apart."""
+    from types import SimpleNamespace
+
+    from drake_cert.cli.verify import claims_summary
+
+    designs = [SimpleNamespace(labels=["sunny"], speed_mps=19.36),
+               SimpleNamespace(labels=["sunny", "rain", "snow"], speed_mps=0.0)]
+    text = claims_summary(designs)
+    assert text.startswith("2 claims hold: 1 safe speed, 1 range certified to have none "
+                           "(sunny+rain+snow: the car stops there")

@@ -46,8 +46,23 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _format_line(d) -> str:
     status = "ok  " if d.ok else "FAIL"
     margins = ", ".join(f"{k}={v:.4g}" for k, v in d.margins.items())
-    return f"{status} [{d.index}] {'+'.join(d.labels) or '(interval)'} " \
-           f"speed {d.speed_mps:.2f} m/s: {margins}"
+    speed = (f"speed {d.speed_mps:.2f} m/s" if d.speed_mps > 0
+             else "no safe speed (certified: the car stops)")
+    return f"{status} [{d.index}] {'+'.join(d.labels) or '(interval)'} {speed}: {margins}"
+
+
+def claims_summary(designs) -> str:
+    """What the verified designs claim, by kind: "N claims hold: S safe speeds, Z ranges
+    certified to have none (labels, ...)"."""
+    none = [d for d in designs if not d.speed_mps > 0]
+    n, fast = len(designs), len(designs) - len(none)
+    text = (f"{n} claim{'s hold' if n != 1 else ' holds'}: {fast} safe speed"
+            f"{'s' if fast != 1 else ''}, {len(none)} range{'s' if len(none) != 1 else ''} "
+            "certified to have none")
+    if none:
+        text += f" ({', '.join('+'.join(d.labels) or '(interval)' for d in none)}: the car " \
+                "stops there; a route that needs such a range cannot be driven)"
+    return text
 
 
 def run(args: argparse.Namespace) -> int:
@@ -94,6 +109,5 @@ def run(args: argparse.Namespace) -> int:
         return 1
     complete = (f"; complete: a design for each of the {report.label_ranges} label ranges of "
                 f"the {report.completeness_against}" if report.completeness_checked else "")
-    print(f"drake-cert verify: all {len(report.designs)} designs hold{complete}",
-          file=sys.stderr)
+    print(f"drake-cert verify: {claims_summary(report.designs)}{complete}", file=sys.stderr)
     return 0
