@@ -795,6 +795,8 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     showed); the lead-in before it (``lead_in_m``, driven under the envelope design before any
     decision) counts in every other figure. ``abstention_fraction``: share of camera ticks
     whose own decision is the envelope (perception abstained, or the frame was bad);
+    ``certified_wrong_fraction``: share of camera ticks whose own decision is certified (not
+    the envelope) and whose interval misses the true stiffness of the frame's road;
     ``envelope_fraction``: share of camera ticks whose decision for the look point is the
     envelope after the dwell time (the abstentions, and the ticks after one whose narrower
     design the dwell time holds back); ``envelope_time_fraction``: share of simulated time the
@@ -849,6 +851,9 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
                                            or scenario.attack.eps <= scenario.perception.eps),
         "abstention_fraction": (float(np.mean(ticks.requested_design_index == envelope_index))
                                 if envelope_index is not None and len(ticks.status) else None),
+        "certified_wrong_fraction": (
+            float(np.mean((ticks.requested_design_index != envelope_index) & ~covers))
+            if envelope_index is not None and len(ticks.status) else None),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
         "envelope_time_fraction": envelope_time,
         "lead_in_m": float(lead_in_m),

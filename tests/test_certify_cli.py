@@ -59,6 +59,17 @@ def test_certify_reports_accuracy_radius_abstain_rate_and_interval(models, capsy
     assert 0.0 <= s["unbounded_radius_rate"] <= 1.0 and s["interval_width_mean"] > 0
     assert {r["label"] for r in out["records"]} == {0, 1, 2}  # balanced frame choice
     assert out["provenance"]["seed"] == 0
+    # every frame's label range is certified right, certified wrong, or abstains
+    shares = [s[f"{k}_rate"] for k in ("certified_right", "certified_wrong",
+                                        "interval_abstain")]
+    assert sum(shares) == pytest.approx(1.0)
+    assert s["interval_abstain_rate"] == s["envelope_rate"]
+    wrong = sum(r["interval_certified"] and not r["interval_holds_label"]
+                for r in out["records"])
+    assert s["certified_wrong_rate"] == wrong / 3
+    lo, hi = s["certified_wrong_rate_ci95"]
+    assert lo <= s["certified_wrong_rate"] <= hi
+    assert s["training"] == {"method": "gaussian"}  # a file without the field: the old way
 
 
 def test_certify_base_model_reports_attack_accuracy_and_no_radius(models, capsys):

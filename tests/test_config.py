@@ -202,3 +202,22 @@ def test_check_frame_size_says_how_much_memory_and_the_limit():
         "--size 100000 px: one 100000x100000 RGB frame takes 112 GiB in float32, a batch of "
         "500 noisy copies 54.6 TiB; the limit is 1024 px (12 MiB a frame; the shipped models "
         "take 64 px)")
+
+
+@pytest.mark.parametrize("schema, name", [
+    (config.VehicleParams, "vehicle.yaml"), (config.VehicleParams, "vehicles/suv.yaml"),
+    (config.ConditionsTable, "conditions.yaml"), (config.Settings, "settings.yaml")])
+def test_the_loader_without_drake_builds_what_pydrake_builds(schema, name):
+    """A machine with torch but not Drake (a GPU box training models) loads the same files
+    into the same objects."""
+    import yaml
+
+    path = config.default_path(name)
+    raw = yaml.safe_load(path.read_text())
+    assert config.build_without_drake(schema, raw, "", name) == config.load_typed(schema, path)
+
+
+def test_the_loader_without_drake_names_a_fraction_where_an_integer_belongs():
+    with pytest.raises(ConfigError, match="frames_per_class = 2.5 must be an integer"):
+        config.build_without_drake(config.Preset, {"name": "x", "labels": [],
+                                                   "frames_per_class": 2.5}, "", "f.yaml")

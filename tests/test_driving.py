@@ -136,6 +136,10 @@ def test_an_abstention_shows_the_envelope_at_once_and_the_dwell_adds_held_ticks(
     assert np.all(ticks.status[abstained] == 1)
     assert summary["abstention_fraction"] == pytest.approx(np.mean(abstained))
     assert summary["abstention_fraction"] <= summary["envelope_fraction"]
+    # a certified tick whose interval misses the frame's true stiffness is certified wrong
+    seen = ticks.seen_stiffness_n_per_rad
+    missed = (seen < ticks.interval_n_per_rad[:, 0]) | (seen > ticks.interval_n_per_rad[:, 1])
+    assert summary["certified_wrong_fraction"] == pytest.approx(np.mean(missed & ~abstained))
     held = (ticks.status == 1) & ~abstained  # the envelope held by the dwell time
     assert np.all(ticks.design_index[held] == envelope)
 
@@ -167,6 +171,7 @@ def _speed_of(designs, labels):
     return max(d.speed_mps for d in designs if d.labels == labels)
 
 
+@pytest.mark.slow  # ~50 s on 2 cores (test_longitudinal.py checks the rule itself)
 def test_entering_snow_at_full_sunny_speed_the_car_brakes_inside_what_it_has_seen(setup):
     # The shipped sunny_into_snow with its sunny straight cut to 180 m (test budget; from the
     # route's start the car needs 84 m to reach 19.36 m/s at 2 m/s^2, and some 55 m to brake
@@ -278,6 +283,7 @@ def test_the_drive_summary_reports_the_design_in_force_beside_the_look_ahead_fig
                               **setup).summary["attack_within_certified_budget"]
 
 
+@pytest.mark.slow  # ~40 s (test_switching_gradient.py drives the law in the fast suite)
 def test_the_gradient_law_drives_the_switching_controller_with_an_implicit_integrator(setup):
     sc = load_scenario("dry_to_snow")
     gradient = dataclasses.replace(sc.controller, law="gradient")

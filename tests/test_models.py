@@ -16,6 +16,8 @@ from drake_cert.perception.models import (
 from drake_cert.perception.probe import mean_colour_probe_accuracy
 from drake_cert.perception.training import (
     TrainConfig,
+    consistency_config,
+    consistency_loss,
     evaluate_accuracy,
     evaluate_mse,
     fit_regressor,
@@ -57,6 +59,65 @@ def test_tiny_training_learns_above_chance(tiny):
 def test_a_cnn_beats_the_mean_colour_probe_by_20_points(tiny):
     model, _, train, test = tiny
     assert evaluate_accuracy(model, test) >= mean_colour_probe_accuracy(train, test) + 0.2
+
+
+def test_consistency_loss_is_cross_entropy_plus_lambda_kl_plus_eta_entropy():
+    """Jeong and Shin's objective on m copies: with copies that agree, the KL term is zero and
+    the loss is the cross-entropy plus eta times the entropy of the (common) softmax; with
+    lambda = eta = 0 it is the copies' mean cross-entropy (Gaussian augmentation)."""
+    torch.manual_seed(0)
+    logits = torch.randn(3, 4)
+    labels = torch.tensor([0, 2, 3])
+    same = logits.repeat(2, 1)
+    ce = torch.nn.functional.cross_entropy(logits, labels)
+    p = logits.softmax(1)
+    entropy = -(p * p.log()).sum(1).mean()
+    assert float(consistency_loss(same, labels, copies=2, lam=10.0, eta=0.0)) == \
+        pytest.approx(float(ce), rel=1e-6)
+    assert float(consistency_loss(same, labels, copies=2, lam=10.0, eta=0.5)) == \
+        pytest.approx(float(ce + 0.5 * entropy), rel=1e-6)
+    other = torch.cat([logits, torch.randn(3, 4)])
+    mean_ce = torch.nn.functional.cross_entropy(other, labels.repeat(2))
+    plain = consistency_loss(other, labels, copies=2, lam=0.0, eta=0.0)
+    assert float(plain) == pytest.approx(float(mean_ce), rel=1e-6)
+    assert float(consistency_loss(other, labels, copies=2, lam=1.0, eta=0.0)) > float(plain)
+
+
+@pytest.mark.parametrize("bad", [dict(method="smoothadv"), dict(method="consistency", copies=1),
+                                 dict(method="consistency", copies=2,
+                                      consistency_lambda=-1.0),
+                                 dict(method="gaussian", copies=2)])
+def test_a_bad_training_method_is_a_config_error(bad):
+    with pytest.raises(ConfigError):
+        TrainConfig(**bad)
+
+
+def test_consistency_training_learns_and_its_copies_agree_more_under_noise():
+    """Consistency regularization (m = 2, lambda = 10) learns a classifier above chance whose
+    predictions under the noise disagree less, across two noisy copies, than those of
+    Gaussian augmentation trained on the same data for the same steps."""
+    from drake_cert.perception.training import add_gaussian_noise
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    train = load_split("carla-like", "train", frames_per_class=60)
+    test = load_split("carla-like", "test", frames_per_class=30)
+    sigma = 0.5
+    plain, _ = train_classifier(train, sigma=sigma, seed=0, config=TINY)
+    regular, metrics = train_classifier(train, sigma=sigma, seed=0,
+                                        config=consistency_config(10.0, base=TINY))
+    torch.set_num_threads(before)
+    assert metrics["config"]["method"] == "consistency"
+    assert evaluate_accuracy(regular, test, sigma=sigma) > 0.5  # chance is 1/3
+
+    def disagreement(model):
+        g = torch.Generator().manual_seed(1)
+        with torch.no_grad():
+            a = model(add_gaussian_noise(test.images, sigma, g)).argmax(1)
+            b = model(add_gaussian_noise(test.images, sigma, g)).argmax(1)
+        return float((a != b).float().mean())
+
+    assert disagreement(regular) < disagreement(plain)
 
 
 def test_training_is_deterministic_and_resumes_from_its_checkpoint(tmp_path):

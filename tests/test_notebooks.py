@@ -3,6 +3,7 @@
 import pathlib
 
 import nbformat
+import pytest
 from nbclient import NotebookClient
 
 NOTEBOOKS = pathlib.Path(__file__).resolve().parents[1] / "notebooks"
@@ -21,6 +22,7 @@ def test_closed_loop_notebook_runs(monkeypatch):
     _execute("closed_loop.ipynb", monkeypatch)
 
 
+@pytest.mark.slow  # ~30 s on 2 cores
 def test_certified_perception_notebook_runs(monkeypatch):
     _execute("certified_perception.ipynb", monkeypatch)
 
@@ -29,6 +31,7 @@ def test_certified_driving_notebook_runs(monkeypatch):
     _execute("certified_driving.ipynb", monkeypatch)
 
 
+@pytest.mark.slow  # ~65 s on 2 cores
 def test_reproduction_notebook_runs(monkeypatch):
     _execute("reproduction.ipynb", monkeypatch)
 

@@ -112,6 +112,7 @@ def loopback_head():
         assert not left, f"processes of the test's Ray head still alive: {left}"
 
 
+@pytest.mark.slow  # ~55 s: a real Ray cluster
 def test_a_real_loopback_cluster_gives_the_serial_tables_byte_for_byte(
         loopback_head, tmp_path, monkeypatch):
     from drake_cert.experiments.executors import RayExecutor

@@ -49,6 +49,7 @@ def test_the_certified_pipeline_never_leaves_the_lane_where_its_interval_covers(
             assert r["left_lane"] == "False", r
 
 
+@pytest.mark.slow  # ~25 s on 2 cores
 def test_a_frame_recomputed_alone_in_a_smaller_run_gives_the_same_rows(quick_local):
     """One preset, no regression, no g_conformal: each cell draws the noise it draws in the full
     run (cell seeds are keyed by what the cell is, not by its place in the run's list)."""
@@ -178,6 +179,7 @@ class CountingExecutor:
         return self.inner.map(make_worker, tasks, progress, on_result=counted, stop=stop)
 
 
+@pytest.mark.slow  # ~70 s on 2 cores
 def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tmp_path):
     """Stop after the first frame, rerun: only the second frame (and no calibration) is
     computed, and the rows equal those of the uninterrupted run."""
@@ -235,6 +237,7 @@ def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(
     assert "holds no frame" in capsys.readouterr().err
 
 
+@pytest.mark.slow  # ~60 s on 2 cores
 def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tmp_path):
     """g's conformal calibrations are executor tasks kept in the store: a rerun computes only
     the frame left, and every row equals the frame computed alone (which calibrates itself)."""

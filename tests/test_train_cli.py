@@ -74,6 +74,38 @@ def test_train_writes_models_with_provenance_and_a_manifest_then_skips(capsys, t
     assert model_path("rtk-like", "classify", 0.5, root).stat().st_mtime_ns == before
 
 
+def test_consistency_training_is_recorded_in_the_file_the_manifest_and_certify(capsys,
+                                                                               tmp_path):
+    from drake_cert.perception.models import training_of
+
+    root = str(tmp_path)
+    assert cli.main(["train", *TINY, "--sigma", "0.25", "--models", root, "--method",
+                     "consistency", "--consistency-lambda", "5", "--copies", "2"]) == 0
+    model = load_model("rtk-like", "classify", 0.25, root)
+    assert training_of(model) == {"method": "consistency", "copies": 2, "lambda": 5.0,
+                                  "eta": 0.5}
+    assert "--method consistency --consistency-lambda 5" in \
+        model.meta["provenance"]["command"]
+    manifest = yaml.safe_load((tmp_path / "MANIFEST.yaml").read_text())
+    assert manifest["models"]["rtk-like/classify_sigma0.25.pt"]["training"]["lambda"] == 5.0
+    capsys.readouterr()
+    assert cli.main(["certify", "--preset", "rtk-like", "--sigma", "0.25", "--frames", "3",
+                     "--n0", "10", "--n", "200", "--compile", "off", "--models", root,
+                     "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)["summary"]
+    assert summary["training"]["method"] == "consistency"
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--method", "consistency", "--copies", "1"], "m >= 2"),
+    (["--method", "consistency", "--consistency-lambda", "-3"], "consistency_lambda -3"),
+    (["--device", "tpu9"], "device"),
+])
+def test_bad_training_options_give_one_line(capsys, tmp_path, extra, message):
+    _one_error_line(capsys, ["train", *TINY, "--sigma", "0.25", "--models", str(tmp_path),
+                             *extra], message)
+
+
 def test_regressor_head_option_fits_the_ridge_head_on_frozen_features(capsys, tmp_path):
     from drake_cert.perception.models import StiffnessRegressor, read_model_file
 

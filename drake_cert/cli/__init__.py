@@ -24,6 +24,8 @@ COMMANDS = {
     "generate": "render synthetic driving frames for a preset and write a sample grid",
     "train": "train a perception model (classifier or regressor) for a preset",
     "certify": "certify a smoothed model on frames, optionally under attack",
+    "sweep": "train candidate classifiers and pick the one that abstains least without "
+             "certifying wrong more",
     "drive": "drive a route in the certified closed-loop Diagram (camera to steering)",
     "reproduce": "reproduce the paper's tables from per-frame episodes",
 }
@@ -39,6 +41,7 @@ HEAVY_IMPORTS = {
     "generate": ("numpy", "torch"),
     "train": ("numpy", "torch"),
     "certify": ("numpy", "torch"),
+    "sweep": ("numpy", "torch"),
     "drive": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
     "reproduce": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
 }

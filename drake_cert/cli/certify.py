@@ -127,7 +127,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from drake_cert.io import provenance
     from drake_cert.perception.datasets import load_split
-    from drake_cert.perception.models import check_sigma, load_model
+    from drake_cert.perception.models import check_sigma, load_model, training_of
 
     settings = settings_from_args(args)
     table = load_conditions()
@@ -163,6 +163,7 @@ def run(args: argparse.Namespace) -> int:
             calibration = (cal.images, cal.stiffness_n_per_rad, cal.labels)
         records, summary = certify_regressor(model, images, labels, stiffness, calibration,
                                              table.envelope(settings.preset), settings, progress)
+    summary["training"] = training_of(model)
     if args.json:
         print(json.dumps(json_safe({"summary": summary, "records": records,
                                     "provenance": provenance(settings.seed)}), indent=1,
@@ -210,7 +211,10 @@ def format_summary(s: dict) -> str:
                 f"single label: {s['mean_radius_label']:.3f}; abstain = 0)\n"
                 f"run-time interval at eps={s['eps']:g}: mean width "
                 f"{s['interval_width_mean']:,.0f} N/rad, coverage {s['interval_coverage']:.3f}"
-                f", envelope rate {s['envelope_rate']:.3f}" + _conformal_line(s))
+                f", envelope rate {s['envelope_rate']:.3f}\n"
+                f"label ranges certified at eps={s['eps']:g}: right {_share(s, 'certified_right')}"
+                f", WRONG {_share(s, 'certified_wrong')}, abstain {_share(s, 'interval_abstain')}"
+                + _conformal_line(s))
     if s["sigma"] == 0:
         return (f"{head} (base model f, no certificate)\n"
                 f"mean abs error {s['mae_n_per_rad']:,.0f} N/rad "
@@ -231,6 +235,11 @@ def _conformal_line(s: dict) -> str:
             f"{s['conformal_interval_width_mean']:,.0f} N/rad, coverage "
             f"{s['conformal_interval_coverage']:.3f} (95% CI {lo:.3f}-{hi:.3f}; guaranteed >= "
             f"{s['conformal_guarantee']:.3f} without assuming the classifier is right)")
+
+
+def _share(s: dict, name: str) -> str:
+    lo, hi = s[f"{name}_rate_ci95"]
+    return f"{s[f'{name}_rate']:.3f} [{lo:.3f}, {hi:.3f}]"
 
 
 def _num(value) -> str:

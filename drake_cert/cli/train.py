@@ -51,6 +51,20 @@ def configure(parser) -> None:
                         help=f"classifier and end-to-end regressor epochs (default: "
                              f"max({MIN_EPOCHS}, "
                              f"ceil({FRAME_PASSES} / training frames)))")
+    parser.add_argument("--method", choices=("gaussian", "consistency"), default="gaussian",
+                        help="classifier training: 'gaussian' augmentation (cross-entropy on "
+                             "one noisy copy) or 'consistency' regularization (m noisy copies; "
+                             "+ lambda * KL to their mean softmax + eta * its entropy; "
+                             "docs/design.md 3.2); default gaussian")
+    parser.add_argument("--consistency-lambda", type=float, default=10.0,
+                        help="consistency: weight lambda of the KL term (default 10)")
+    parser.add_argument("--consistency-eta", type=float, default=0.5,
+                        help="consistency: weight eta of the mean softmax's entropy (default 0.5)")
+    parser.add_argument("--copies", type=int, default=2,
+                        help="consistency: noisy copies m of each frame per step (default 2)")
+    parser.add_argument("--device", default="cpu",
+                        help="where to train: cpu (default) or cuda (torch only, no Drake "
+                             "needed; the noise streams are the CPU's either way)")
     parser.add_argument("--seed", type=int, default=0, help="data and training seed")
     parser.add_argument("--frames-per-class", type=int, default=None,
                         help="training frames per class (default: the preset's count)")
@@ -71,11 +85,14 @@ def default_epochs(train_frames: int) -> int:
 def run(args) -> int:
     import torch
 
+    from drake_cert.certification.sampler import resolve_device
     from drake_cert.config import load_conditions
     from drake_cert.perception.models import check_sigma
 
     torch.set_num_threads(max(1, int(args.threads)))
     table = load_conditions(args.conditions)
+    args.device = resolve_device(args.device)
+    train_config(args)  # a bad method parameter: ConfigError before any work
     if args.seed < 0:
         raise ConfigError(f"--seed {args.seed} must be >= 0")
     if args.epochs is not None and args.epochs <= 0:
@@ -104,6 +121,16 @@ def run(args) -> int:
     return 0
 
 
+def train_config(args):
+    """The classifier's :class:`TrainConfig` of the command line (method and its parameters)."""
+    from drake_cert.perception.training import TrainConfig, consistency_config
+
+    if getattr(args, "method", "gaussian") == "consistency":
+        return consistency_config(args.consistency_lambda, copies=args.copies,
+                                  eta=args.consistency_eta)
+    return TrainConfig()
+
+
 def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
     """The equivalent single-model command line (recorded in the model's provenance)."""
     from drake_cert.perception.models import sigma_tag
@@ -114,6 +141,9 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
         cmd += ["--regressor", "head"]
     if args.epochs is not None and not head:
         cmd += ["--epochs", str(args.epochs)]
+    if task == "classify" and getattr(args, "method", "gaussian") == "consistency":
+        cmd += ["--method", "consistency", "--consistency-lambda", f"{args.consistency_lambda:g}",
+                "--consistency-eta", f"{args.consistency_eta:g}", "--copies", str(args.copies)]
     if args.seed != 0:
         cmd += ["--seed", str(args.seed)]
     if args.frames_per_class is not None:
@@ -153,6 +183,9 @@ def train_one(table, preset: str, task: str, sigma: float, args) -> dict | None:
     t0 = time.perf_counter()
     ckpt = path.with_name(path.name + ".ckpt") if task == "classify" else None
     if task == "classify":
+        from drake_cert.perception.training import training_method
+
+        meta["training"] = training_method(train_config(args))
         model, train_metrics, test_metrics = _fit_classifier(train, test, sigma, args, ckpt,
                                                              name)
     else:
@@ -191,7 +224,9 @@ def _fit_classifier(train, test, sigma: float, args, ckpt: Path, name: str):
 
     epochs = args.epochs or default_epochs(len(train))
     model, train_metrics = train_classifier(train, sigma=sigma, epochs=epochs, seed=args.seed,
-                                            checkpoint=ckpt, progress=True, description=name)
+                                            config=train_config(args), checkpoint=ckpt,
+                                            progress=True, description=name,
+                                            device=getattr(args, "device", "cpu"))
     test_metrics = {"test_accuracy_clean": evaluate_accuracy(model, test),
                     "test_accuracy_noisy": evaluate_accuracy(model, test, sigma=sigma,
                                                              seed=args.seed),
@@ -218,13 +253,15 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     sha = file_sha256(cpath)
     if getattr(args, "regressor", "net") == "head":
         model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
-        extra = {"regressor": "head", "classifier_file": cpath.name, "classifier_sha256": sha}
+        extra = {"regressor": "head", "classifier_file": cpath.name, "classifier_sha256": sha,
+                 "training": {"method": "ridge_head"}}
     else:
         epochs = args.epochs or default_epochs(len(train))
         model, train_metrics = train_regressor_end_to_end(
             train, sigma=sigma, epochs=epochs, seed=args.seed, init=classifier, progress=True,
-            description=name)
-        extra = {"regressor": "end_to_end", "init_file": cpath.name, "init_sha256": sha}
+            description=name, device=getattr(args, "device", "cpu"))
+        extra = {"regressor": "end_to_end", "init_file": cpath.name, "init_sha256": sha,
+                 "training": {"method": "huber_end_to_end"}}
     test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
                     "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
                                                                 seed=args.seed),
@@ -252,6 +289,7 @@ def update_manifest(root: Path, path: Path, meta: dict) -> None:
         "created_utc": meta["provenance"]["created_utc"],
         "sha256": file_sha256(path),
         "fit_seconds": meta["seconds"]["fit"],
+        "training": meta.get("training", {}),
         "test_metrics": metrics,
     }
     manifest = {"description": "Shipped perception models; each was made by its command "

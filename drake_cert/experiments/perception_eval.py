@@ -8,6 +8,7 @@ round-robin over the classes from a seeded permutation, so any count is balanced
 
 from __future__ import annotations
 
+import copy
 import dataclasses
 import math
 from collections.abc import Callable, Iterable
@@ -140,6 +141,10 @@ def _attacked(model, images: torch.Tensor, settings: CertifySettings,
               chunk: int = 16) -> torch.Tensor:
     if settings.attack == "none" or settings.eps == 0:
         return images
+    if any(p.device.type != "cpu" for p in model.parameters()):
+        # the attack's streams (random start, noise draws) are the CPU's: it runs there, on a
+        # copy, so a model that certification moved to a GPU is attacked as on a CPU machine
+        model = copy.deepcopy(model).cpu()
     out = []
     for i in range(0, len(images), chunk):
         # Each frame attacks with its own stream (random start, noise draws), batched.
@@ -232,6 +237,7 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
             "prediction": seen.label, "radius": seen.radius,
             "interval_labels": list(rt.labels), "interval_n_per_rad": list(rt.interval),
             "interval_certified": rt.certified, "interval_radius": rt.radius,
+            "interval_holds_label": label_names[int(labels[i])] in rt.labels,
             "covered": rt.stiffness_lo_n_per_rad <= y <= rt.stiffness_hi_n_per_rad,
         })
     summary = summarize_classification(records, settings)
@@ -320,6 +326,26 @@ def summarize_classification(records: list[dict], settings: CertifySettings) -> 
         "coverage_given_clean_right": float(np.mean(covered[right])) if right.any() else None,
         "envelope_rate": float(np.mean([not r["interval_certified"] for r in records])),
     })
+    out.update(decision_shares(records))
+    return out
+
+
+def decision_shares(records: list[dict]) -> dict:
+    """The three outcomes of the run-time interval at the observed frames, each a share of the
+    frames with its 95 % Clopper-Pearson interval: ``certified_right`` (a label range
+    certified beyond eps that holds the true label), ``certified_wrong`` (one that does not:
+    under the safe-set interval the stiffness interval then excludes the truth, which is
+    worse than abstaining) and ``interval_abstain`` (no range certified: the envelope; the
+    same frames as ``envelope_rate``). Keys ``<name>_rate`` and ``<name>_rate_ci95``."""
+    certified = np.array([bool(r["interval_certified"]) for r in records])
+    holds = np.array([bool(r["interval_holds_label"]) for r in records])
+    counts = {"certified_right": int((certified & holds).sum()),
+              "certified_wrong": int((certified & ~holds).sum()),
+              "interval_abstain": int((~certified).sum())}
+    out = {}
+    for name, hits in counts.items():
+        out[f"{name}_rate"] = hits / len(records)
+        out[f"{name}_rate_ci95"] = list(clopper_pearson_interval(hits, len(records)))
     return out
 
 

@@ -46,6 +46,7 @@ from drake_cert.experiments.perception_eval import (
     certify_classifier,
     certify_regressor,
     clopper_pearson_interval,
+    decision_shares,
     json_safe,
     select_frames,
 )
@@ -270,6 +271,8 @@ def classification_row(f_cell: dict, g_cell: dict) -> dict:
         "g_accuracy": g_cell["summary"]["accuracy"],
         "g_abstain": g_cell["summary"]["abstain_rate"],
         "safe_set_certified": 1 - g_cell["summary"]["envelope_rate"],
+        # cells stored before the outcomes were recorded have no "interval_holds_label"
+        "outcomes": decision_shares(g) if all("interval_holds_label" in r for r in g) else None,
         "safe_set": coverage(g) | {"width_n_per_rad": _width(g, "interval_n_per_rad")},
         "safe_set_given_clean_right": coverage(right) if right else None,
         "conformal": coverage(g, "conformal_covered")
@@ -308,6 +311,14 @@ def rows(cells: dict[str, dict], ts: TableSettings) -> dict[str, list[dict]]:
     return out
 
 
+def _outcomes(o: dict | None) -> str:
+    if o is None:
+        return "-"
+    lo, hi = o["certified_wrong_rate_ci95"]
+    return (f"{o['certified_right_rate']:.3f} / {o['certified_wrong_rate']:.3f} "
+            f"[{lo:.3f}, {hi:.3f}] / {o['interval_abstain_rate']:.3f}")
+
+
 def _cov(c: dict) -> str:
     return f"{c['share']:.3f} [{c['ci95'][0]:.3f}, {c['ci95'][1]:.3f}]"
 
@@ -327,20 +338,25 @@ def render(all_rows: dict[str, dict[str, list[dict]]], ts: TableSettings,
         f"Conformal calibration: {ts.conformal_per_class} held-out frames per label "
         f"(classification), {ts.regression_per_class} (regression), {ts.calibration_n} "
         "samples each. Coverage: share of frames whose interval holds the TRUE stiffness, "
-        "with its 95 % Clopper-Pearson interval. Widths in kN/rad.", ""]
+        "with its 95 % Clopper-Pearson interval. Label range at eps: share of frames whose "
+        "certified range holds the true label (right), misses it (WRONG: the safe-set interval "
+        "then excludes the truth), or none is certified (abstain: the envelope). Widths in "
+        "kN/rad.", ""]
     for preset, r in all_rows.items():
         lines += [f"## {preset}", ""]
         if r["classify"]:
             lines += [
-                "| attack | eps | f acc. | g acc. | g abstain | safe-set interval: certified "
+                "| attack | eps | f acc. | g acc. | g abstain | label range at eps: certified "
+                "right / WRONG [95% CI] / abstain | safe-set interval: certified "
                 "/ coverage [95% CI] / width | coverage if g right on clean | robust "
                 "conformal: coverage [95% CI] / width | guarantee (conformal) |",
-                "|---|---|---|---|---|---|---|---|---|"]
+                "|---|---|---|---|---|---|---|---|---|---|"]
             for row in r["classify"]:
                 given = row["safe_set_given_clean_right"]
                 lines.append(
                     f"| {row['attack']} | {row['eps']:g} | {row['f_accuracy']:.3f} | "
                     f"{row['g_accuracy']:.3f} | {row['g_abstain']:.3f} | "
+                    f"{_outcomes(row.get('outcomes'))} | "
                     f"{row['safe_set_certified']:.2f} / {_cov(row['safe_set'])} / "
                     f"{row['safe_set']['width_n_per_rad'] / 1e3:.1f} | "
                     f"{_cov(given) if given else '-'} | {_cov(row['conformal'])} / "

@@ -242,3 +242,16 @@ def load_model(preset: str, task: str, sigma: float, root: str | Path | None = N
                                  f"{sigma_tag(sigma)} ({path}); make it with: "
                                  f"{train_command(preset, task, sigma, root)}")
     return load_model_file(path)
+
+
+def training_of(model: nn.Module) -> dict:
+    """How the model was trained, from its metadata: ``{"method": ..., parameters}``. Files
+    written before the method was recorded were all trained one way: classifiers by
+    Gaussian augmentation; regressors end to end, or a ridge head when their metadata names
+    the classifier the head was fitted on."""
+    meta = getattr(model, "meta", {}) or {}
+    if "training" in meta:
+        return dict(meta["training"])
+    if meta.get("task") == "regress":
+        return {"method": "ridge_head" if "classifier_file" in meta else "huber_end_to_end"}
+    return {"method": "gaussian"}

@@ -1,11 +1,16 @@
-"""Training: Gaussian-noise augmented classifier (Cohen et al. 2019) and the ridge regressor head.
+"""Training: the noise-trained classifier (Gaussian augmentation, Cohen et al. 2019, or
+consistency regularization, Jeong and Shin 2020) and the stiffness regressor.
 
 Classifier: SGD with Nesterov momentum, a learning rate that is a pure function of the step
 (linear warm-up, cosine decay), random horizontal flips, and at sigma > 0 every training
 frame is replaced by ``x + N(0, sigma^2 I)`` in [0, 1] pixel space (no clipping, as the
-smoothing noise). The data order, flips and noise of epoch e come from a generator seeded by
-``(seed, e)``, so a run resumed from its per-epoch checkpoint gives the same weights as an
-uninterrupted run.
+smoothing noise). ``TrainConfig.method`` picks the loss: ``gaussian`` is the cross-entropy
+on one noisy copy; ``consistency`` (docs/design.md 3.2) draws m noisy copies of each frame and
+adds to their mean cross-entropy lambda times the mean KL divergence from the copies' mean
+softmax to each copy's softmax and eta times that mean's entropy. The data order, flips and
+noise of epoch e come from a generator seeded by ``(seed, e)`` and are drawn on the CPU (also
+when the model trains on a GPU), so a run resumed from its per-epoch checkpoint gives the same
+weights as an uninterrupted run.
 
 Regressor (paper: ResNet features + linear SVR): by default the whole network trained end to
 end under the same noise (:func:`train_regressor_end_to_end`, backbone initialised from the
@@ -27,6 +32,7 @@ import torch
 from torch import nn
 from tqdm import tqdm
 
+from drake_cert.errors import ConfigError
 from drake_cert.io import atomic_write_bytes
 from drake_cert.perception.frameset import FrameSet
 from drake_cert.perception.models import SmallResNet, StiffnessRegressor
@@ -47,6 +53,65 @@ class TrainConfig:
     weight_decay: float = 5.0e-4
     momentum: float = 0.9
     flip: bool = True
+    method: str = "gaussian"  # or "consistency" (TRAINING_METHODS)
+    copies: int = 1  # noisy copies of each frame per step (consistency: m >= 2)
+    consistency_lambda: float = 0.0  # weight of the KL consistency term
+    consistency_eta: float = 0.0  # weight of the entropy of the copies' mean softmax
+
+    def __post_init__(self):
+        check_training_method(self)
+
+
+TRAINING_METHODS = ("gaussian", "consistency")
+
+
+def check_training_method(config: TrainConfig) -> None:
+    """ConfigError naming the method or the parameter of it that is not valid."""
+    if config.method not in TRAINING_METHODS:
+        raise ConfigError(f"training method {config.method!r} is not one of "
+                         f"{', '.join(TRAINING_METHODS)}")
+    if config.method == "gaussian" and (config.copies != 1 or config.consistency_lambda
+                                        or config.consistency_eta):
+        raise ConfigError("the gaussian method takes one noisy copy and no consistency terms")
+    if config.method == "consistency":
+        if int(config.copies) != config.copies or config.copies < 2:
+            raise ConfigError(f"consistency needs m >= 2 noisy copies (got {config.copies})")
+        for name in ("consistency_lambda", "consistency_eta"):
+            value = getattr(config, name)
+            if not (math.isfinite(value) and value >= 0):
+                raise ConfigError(f"{name} {value} must be a finite number >= 0")
+
+
+def consistency_config(lam: float, *, copies: int = 2, eta: float = 0.5,
+                       base: TrainConfig | None = None) -> TrainConfig:
+    """The training configuration of consistency regularization with weights lambda, eta on
+    ``copies`` noisy copies (Jeong and Shin's defaults m = 2, eta = 0.5)."""
+    return dataclasses.replace(base or TrainConfig(), method="consistency", copies=int(copies),
+                               consistency_lambda=float(lam), consistency_eta=float(eta))
+
+
+def training_method(config: TrainConfig) -> dict:
+    """The method and its parameters, as a model file's metadata records them."""
+    if config.method == "gaussian":
+        return {"method": "gaussian"}
+    return {"method": "consistency", "copies": config.copies,
+            "lambda": config.consistency_lambda, "eta": config.consistency_eta}
+
+
+def consistency_loss(logits: torch.Tensor, labels: torch.Tensor, *, copies: int, lam: float,
+                     eta: float) -> torch.Tensor:
+    """Consistency-regularized loss of ``logits`` [m * B, K] of m noisy copies stacked
+    copy-major (rows i * B .. (i + 1) * B - 1 are copy i of the batch) with true ``labels`` [B]:
+    mean cross-entropy + lam * mean_i KL(p_bar || p_i) + eta * H(p_bar), where p_i is copy i's
+    softmax and p_bar their mean (docs/design.md 3.2)."""
+    batch = labels.shape[0]
+    log_p = torch.log_softmax(logits, dim=1).reshape(copies, batch, -1)
+    cross_entropy = -log_p.gather(2, labels.repeat(copies, 1)[..., None]).mean()
+    p_bar = log_p.exp().mean(0)
+    log_p_bar = torch.log(p_bar.clamp_min(1e-12))
+    kl = (p_bar[None] * (log_p_bar[None] - log_p)).sum(2).mean()
+    entropy = -(p_bar * log_p_bar).sum(1).mean()
+    return cross_entropy + lam * kl + eta * entropy
 
 
 def learning_rate_at(step: int, total_steps: int, config: TrainConfig) -> float:
@@ -75,9 +140,13 @@ def add_gaussian_noise(x: torch.Tensor, sigma: float, generator: torch.Generator
 def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
                      seed: int = 0, config: TrainConfig | None = None,
                      checkpoint: str | Path | None = None, progress: bool = False,
-                     description: str = "train",
-                     on_epoch_end=None) -> tuple[SmallResNet, dict]:
-    """Train a :class:`SmallResNet` on ``train_set`` with Gaussian noise at ``sigma``.
+                     description: str = "train", on_epoch_end=None,
+                     device: str = "cpu") -> tuple[SmallResNet, dict]:
+    """Train a :class:`SmallResNet` on ``train_set`` under Gaussian noise at ``sigma`` with the
+    configuration's method (gaussian augmentation or consistency regularization).
+
+    ``device``: where the model trains ("cpu" or "cuda"); the random streams are the CPU's
+    either way and the returned model is on the CPU.
 
     ``checkpoint``: a file written atomically after every epoch; if it exists (same
     configuration and data size) training resumes after its last epoch. ``on_epoch_end(epoch)``
@@ -91,7 +160,7 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
     if epochs is not None:
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
     torch.manual_seed(seed)
-    model = SmallResNet(len(train_set.label_names), width=cfg.width)
+    model = SmallResNet(len(train_set.label_names), width=cfg.width).to(device)
     optimizer = make_optimizer(model, cfg)
     n = len(train_set)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -107,7 +176,7 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
         t0 = time.perf_counter()
         loss, accuracy = train_epoch(model, optimizer, train_set, sigma=sigma, seed=seed,
                                      epoch=epoch, config=cfg, progress=progress,
-                                     description=description)
+                                     description=description, device=device)
         seconds += time.perf_counter() - t0
         history.append({"epoch": epoch + 1, "loss": loss, "accuracy": accuracy})
         if progress:
@@ -116,17 +185,28 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
         if checkpoint is not None:
             buf = _io.BytesIO()
             torch.save({"signature": signature, "epoch": epoch + 1, "seconds": seconds,
-                        "history": history, "model": model.state_dict(),
-                        "optimizer": optimizer.state_dict()}, buf)
+                        "history": history, "model": _to_cpu(model.state_dict()),
+                        "optimizer": _to_cpu(optimizer.state_dict())}, buf)
             atomic_write_bytes(checkpoint, buf.getvalue())
         if on_epoch_end is not None:
             on_epoch_end(epoch + 1)
-    model.eval()
+    model = model.cpu().eval()
     last = history[-1] if history else {"loss": math.nan, "accuracy": math.nan}
     metrics = {"train_loss": last["loss"], "train_accuracy": last["accuracy"],
                "epochs": cfg.epochs, "steps": total, "train_seconds": round(seconds, 2),
-               "train_frames": n, "config": dataclasses.asdict(cfg)}
+               "train_frames": n, "device": str(device), "config": dataclasses.asdict(cfg)}
     return model, metrics
+
+
+def _to_cpu(state):
+    """A (nested) state dict with every tensor on the CPU, so a checkpoint loads anywhere."""
+    if isinstance(state, torch.Tensor):
+        return state.cpu()
+    if isinstance(state, dict):
+        return {k: _to_cpu(v) for k, v in state.items()}
+    if isinstance(state, list | tuple):
+        return type(state)(_to_cpu(v) for v in state)
+    return state
 
 
 def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.SGD:
@@ -152,7 +232,7 @@ def _resume(checkpoint, signature: dict, model, optimizer, *, progress: bool,
                   file=sys.stderr)
         return 0, 0.0, []
     model.load_state_dict(state["model"])
-    optimizer.load_state_dict(state["optimizer"])
+    optimizer.load_state_dict(state["optimizer"])  # moves the momenta to the params' device
     start_epoch = int(state["epoch"])
     if progress:
         print(f"{description}: resuming after epoch {start_epoch}/{epochs}", file=sys.stderr)
@@ -161,9 +241,11 @@ def _resume(checkpoint, signature: dict, model, optimizer, *, progress: bool,
 
 def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, sigma: float, seed: int,
                 epoch: int, config: TrainConfig, progress: bool = False,
-                description: str = "train") -> tuple[float, float]:
-    """One epoch (0-based ``epoch``) of noise-augmented SGD; its order, flips and noise come
-    from :func:`epoch_generator` (seed, epoch). Returns mean loss and accuracy on noisy frames."""
+                description: str = "train", device: str = "cpu") -> tuple[float, float]:
+    """One epoch (0-based ``epoch``) of noise-trained SGD with the configuration's method; its
+    order, flips and noise come from :func:`epoch_generator` (seed, epoch). With m copies
+    (consistency) each step draws the m copies' noise of its batch one copy after another.
+    Returns mean loss and accuracy on noisy frames (all copies)."""
     cfg = config
     n = len(train_set)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -181,17 +263,21 @@ def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, sigma: floa
         x = train_set.images[idx]
         flip = flips[idx]
         x = torch.where(flip[:, None, None, None], x.flip(-1), x)
-        x = add_gaussian_noise(x, sigma, gen)
-        y = train_set.labels[idx]
+        x = torch.cat([add_gaussian_noise(x, sigma, gen) for _ in range(cfg.copies)])
+        y = train_set.labels[idx].to(device)
         for group in optimizer.param_groups:
             group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
-        logits = model(x)
-        loss = loss_fn(logits, y)
+        logits = model(x.to(device))
+        if cfg.method == "consistency":
+            loss = consistency_loss(logits, y, copies=cfg.copies, lam=cfg.consistency_lambda,
+                                    eta=cfg.consistency_eta)
+        else:
+            loss = loss_fn(logits, y)
         optimizer.zero_grad(set_to_none=True)
         loss.backward()
         optimizer.step()
         total_loss += float(loss.detach()) * len(idx)
-        correct += int((logits.argmax(1) == y).sum())
+        correct += int((logits.argmax(1) == y.repeat(cfg.copies)).sum()) / cfg.copies
         bar.set_postfix(loss=f"{float(loss.detach()):.3f}")
     bar.close()
     return total_loss / n, correct / n
@@ -277,7 +363,8 @@ def evaluate_mae(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
 def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
                                seed: int = 0, config: TrainConfig | None = None,
                                init: SmallResNet | None = None, progress: bool = False,
-                               description: str = "train regressor") -> tuple[SmallResNet, dict]:
+                               description: str = "train regressor",
+                               device: str = "cpu") -> tuple[SmallResNet, dict]:
     """A stiffness regressor trained end to end under Gaussian noise (DESIGN 3.2).
 
     The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
@@ -288,6 +375,7 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     classifier's schedule (:class:`TrainConfig`, :func:`epoch_generator` streams). After
     training the output layer is rescaled to N/rad, so ``model(x)`` is [B, 1] stiffness in
     N/rad, as :class:`~drake_cert.certification.regressor.MedianSmoothedRegressor` expects.
+    ``device``: where it trains (streams drawn on the CPU; the model is returned on the CPU).
     ``save_model`` stores it like a classifier with one output (``num_classes`` 1).
     Returns the model (eval mode) and metrics: final-epoch training MSE in (N/rad)^2, seconds.
     """
@@ -302,11 +390,12 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     model = SmallResNet(1, width=cfg.width)
     if init is not None:
         model.backbone.load_state_dict(init.backbone.state_dict())
+    model = model.to(device)
     optimizer = make_optimizer(model, cfg)
     n = len(train_set)
     target = train_set.stiffness_n_per_rad.double()
     y_mean = float(target.mean())
-    scaled = ((target - y_mean) / STIFFNESS_UNIT).float()
+    scaled = ((target - y_mean) / STIFFNESS_UNIT).float().to(device)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
     total = steps_per_epoch * cfg.epochs
     loss_fn = nn.SmoothL1Loss(beta=0.1)
@@ -327,17 +416,18 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
             x = add_gaussian_noise(x, sigma, gen)
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
-            pred = model(x).squeeze(-1)
-            loss = loss_fn(pred, scaled[idx])
+            pred = model(x.to(device)).squeeze(-1)
+            loss = loss_fn(pred, scaled[idx.to(device)])
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
-            sq += float(((pred.detach() - scaled[idx]) ** 2).sum())
+            sq += float(((pred.detach() - scaled[idx.to(device)]) ** 2).sum())
         bar.close()
         mse = sq / n * STIFFNESS_UNIT**2
         if progress:
             print(f"{description}: epoch {epoch + 1}/{cfg.epochs} mse {mse:.4g} (N/rad)^2",
                   file=sys.stderr)
+    model = model.cpu()
     with torch.no_grad():  # output in N/rad: y = 1e5 * out + mean
         model.fc.weight.mul_(STIFFNESS_UNIT)
         model.fc.bias.mul_(STIFFNESS_UNIT).add_(y_mean)
@@ -345,5 +435,5 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     metrics = {"train_mse_n_per_rad_sq": mse, "epochs": cfg.epochs, "steps": total,
                "train_seconds": round(time.perf_counter() - start, 2), "train_frames": n,
                "init": "classifier backbone" if init is not None else "fresh",
-               "config": dataclasses.asdict(cfg)}
+               "device": str(device), "config": dataclasses.asdict(cfg)}
     return model, metrics
