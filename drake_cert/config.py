@@ -14,6 +14,7 @@ turn, steering > 0 left, ``psidot_des = V * kappa``.
 
 import dataclasses
 import math
+import re
 import typing
 from importlib import resources
 from pathlib import Path
@@ -461,26 +462,70 @@ def _join(path: str, key: str) -> str:
     return f"{path}.{key}" if path else key
 
 
-def read_yaml_text(filename: str | Path) -> str:
-    """The text of a YAML file; :class:`ConfigError` in one line if it cannot be read or is not
-    text (a binary file: the first byte that is not UTF-8 and its offset)."""
+MAX_INPUT_BYTES = 16 * 2**20  # an input file larger than this is refused unread
+
+
+def read_yaml_text(filename: str | Path, error: type[Exception] = ConfigError) -> str:
+    """The text of a YAML file; ``error`` (:class:`ConfigError`) in one line if it cannot be
+    read, is larger than ``MAX_INPUT_BYTES`` (read no further: ``/dev/zero`` is refused, not
+    read into memory) or is not text (a binary file: the first byte that is not UTF-8 and its
+    offset)."""
     try:
-        return Path(filename).read_text(encoding="utf-8")
+        with open(filename, "rb") as f:
+            data = f.read(MAX_INPUT_BYTES + 1)
     except OSError as e:
-        raise ConfigError(f"{filename}: cannot read file ({e.strerror})") from None
+        raise error(f"{filename}: cannot read file ({e.strerror})") from None
+    if len(data) > MAX_INPUT_BYTES:
+        raise error(f"{filename}: larger than {MAX_INPUT_BYTES // 2**20} MiB; not a "
+                    "configuration or design file")
+    try:
+        return data.decode("utf-8")
     except UnicodeDecodeError as e:
-        raise ConfigError(f"{filename}: not a text file (byte {e.object[e.start]:#04x} at offset "
-                          f"{e.start} is not UTF-8); expected YAML") from None
+        raise error(f"{filename}: not a text file (byte {e.object[e.start]:#04x} at offset "
+                    f"{e.start} is not UTF-8); expected YAML") from None
+
+
+class StrictYamlLoader(yaml.SafeLoader):
+    """PyYAML's safe loader with two fixes for input files: a key given twice in one mapping
+    is an error (PyYAML keeps the last silently), and a number with an exponent but no sign or
+    dot (``1.0e12``, ``2e5``) is a float, as in YAML 1.2 (PyYAML's YAML 1.1 reads it as a
+    string)."""
+
+    def construct_mapping(self, node, deep=False):
+        seen = {}
+        for key_node, _ in node.value:
+            key = self.construct_object(key_node, deep=True)
+            try:
+                line = seen.get(key)
+            except TypeError:  # an unhashable key: the base class says so
+                break
+            if line is not None:
+                raise yaml.constructor.ConstructorError(
+                    None, None, f"key {key!r} given twice (lines {line} and "
+                    f"{key_node.start_mark.line + 1}); give it once", key_node.start_mark)
+            seen[key] = key_node.start_mark.line + 1
+        return super().construct_mapping(node, deep=deep)
+
+
+StrictYamlLoader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"^[-+]?(?:[0-9][0-9_]*(?:\.[0-9_]*)?|\.[0-9_]+)[eE][-+]?[0-9]+$"),
+    list("-+0123456789."))
+
+
+def parse_yaml(text: str, where: str, error: type[Exception] = ConfigError):
+    """Parse YAML text with :class:`StrictYamlLoader`; ``error`` in one line naming ``where``."""
+    try:
+        return yaml.load(text, Loader=StrictYamlLoader)  # noqa: S506 (a SafeLoader subclass)
+    except yaml.YAMLError as e:
+        raise error(f"{where}: not valid YAML ({' '.join(str(e).split())})") from None
 
 
 def load_typed(schema: type, filename: str | Path):
     """Load ``filename`` into ``schema`` strictly; :class:`ConfigError` names key and file."""
     where = str(filename)
     text = read_yaml_text(filename)
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
+    raw = parse_yaml(text, where)
     _check_keys(schema, raw, "", where)
     try:
         from pydrake.common.yaml import yaml_load_typed  # once the checks above have passed

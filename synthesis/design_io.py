@@ -37,6 +37,8 @@ from drake_cert.config import (
     Settings,
     VehicleParams,
     load_typed_mapping,
+    parse_yaml,
+    read_yaml_text,
 )
 from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
@@ -136,16 +138,8 @@ def save_design_table(path: str | Path, table: DesignTable, single: bool = False
 def load_design_file(path: str | Path) -> DesignTable:
     """Read a design table or single-design file; :class:`DesignFormatError` if unreadable."""
     where = str(path)
-    try:
-        text = Path(path).read_text()
-    except (OSError, UnicodeDecodeError) as e:
-        reason = e.strerror if isinstance(e, OSError) else "not UTF-8 text"
-        raise DesignFormatError(f"{where}: cannot read file ({reason})") from None
-    try:
-        raw = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise DesignFormatError(f"{where}: not valid YAML ({str(e).splitlines()[0]})") from None
-    return parse_design_table(raw, where)
+    text = read_yaml_text(path, DesignFormatError)
+    return parse_design_table(parse_yaml(text, where, DesignFormatError), where)
 
 
 def parse_design_table(raw, where: str) -> DesignTable:

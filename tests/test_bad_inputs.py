@@ -329,6 +329,26 @@ def test_a_binary_file_given_as_yaml_is_one_line(tmp_path, capsys, command):
     assert f"{path}: not a text file (byte 0x80 at offset 128 is not UTF-8)" in err
 
 
+def test_a_key_given_twice_is_one_line_naming_both_lines(tmp_path, capsys):
+    """PyYAML keeps the last of two equal keys silently; an input file may not."""
+    path = _vehicle_with(tmp_path, "mass_kg: 1573.0", "mass_kg: 1573.0\nmass_kg: 2000.0")
+    err = one_line_exit_2(capsys, ["synthesize", "--vehicle", path])
+    assert "key 'mass_kg' given twice (lines" in err and path in err
+
+
+def test_a_number_with_an_exponent_is_a_number(tmp_path, capsys):
+    """``1.0e12`` is a float (YAML 1.2), so the answer is about its size, not its type."""
+    err = one_line_exit_2(capsys, ["synthesize", "--vehicle",
+                                   _vehicle_with(tmp_path, "mass_kg: 1573.0", "mass_kg: 1.0e12")])
+    assert "mass_kg = 1e+12 kg is implausibly large" in err, err
+
+
+@pytest.mark.parametrize("command", [["synthesize", "--vehicle"], ["verify"]])
+def test_an_endless_file_is_refused_unread(capsys, command):
+    err = one_line_exit_2(capsys, [*command, "/dev/zero"])
+    assert "/dev/zero: larger than 16 MiB" in err
+
+
 def test_a_scenario_frame_size_of_100000_says_how_much_memory_it_would_need(tmp_path, capsys):
     import yaml
 
