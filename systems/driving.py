@@ -491,6 +491,7 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     table, envelope = moving_envelope(designs, tires, p.preset)
     check_route_is_seen(scenario, table)
     check_look_ahead(scenario, table)
+    check_initial_speed(scenario, table)
     route = Route.build(scenario.route, tires, p.preset, scenario.seed,
                         transition_m=scenario.transition_m)
     sigma = p.sigma if certified else p.base_sigma
@@ -776,6 +777,19 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
                     samples=ticks_raw["samples"][1][:m, 0][keep].astype(int),
                     requested_design_index=ticks_raw["requested"][1][:m, 0][keep].astype(int))
     return tape, ticks
+
+
+def check_initial_speed(scenario: Scenario, table: list) -> None:
+    """ConfigError when the scenario starts the car faster than the fastest safe speed of its
+    preset's designs: it would start outside every certificate (a speed in km/h, say)."""
+    v0 = scenario.motion.initial_speed_mps
+    fastest = max((d.speed_mps for d in table), default=0.0)
+    if v0 > fastest:
+        raise ConfigError(
+            f"{scenario.name}: motion.initial_speed_mps = {v0:g} m/s is above the fastest safe "
+            f"speed of the {scenario.perception.preset} designs ({fastest:.2f} m/s): the car "
+            f"would start outside every certificate (km/h? {v0:g} km/h is {v0 / 3.6:.2f} m/s; "
+            "0 starts at the envelope design's speed)")
 
 
 def time_left_lane(tape: DriveTape) -> float | None:

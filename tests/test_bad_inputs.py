@@ -147,6 +147,7 @@ def test_synthesize_out_under_a_regular_file_fails_before_synthesis(regular_file
     (["--friction", "3"], "--friction 3 is outside (0, 2]"),
     (["--friction", "-0.5"], "--friction -0.5 must be a positive number"),
     (["--radius", "2"], "--radius 2 m must exceed 5 m"),
+    (["--radius", "50000"], "implausibly large for a road curve, above 10000 m (mm? write 50"),
     (["--duration", "1e9"], "exceeds 3600 s"),
     (["--initial-offset", "7"], "|e1(0)| < 5 m"),
     (["--labels", "heavy_rain+"], "label range 'heavy_rain+'"),

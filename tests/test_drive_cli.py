@@ -9,7 +9,7 @@ import pytest
 
 from drake_cert.cli import main
 from drake_cert.config import load_vehicle
-from systems.scenario import SHIPPED_SCENARIOS
+from systems.scenario import SHIPPED_SCENARIOS, scenario_path
 
 KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min_speed_mps",
         "distance_m", "simulated_s", "wall_s", "interval_covers_true_fraction",
@@ -49,6 +49,7 @@ def test_every_shipped_scenario_drives_under_every_attack(designs, scenario, pip
     (["--scenario", "mars"], "neither a file nor a shipped scenario"),
     (["--plot", "x.txt"], "expected a .png"),
     (["--eps", "-1"], "--eps"),
+    (["--eps", "1e9"], "is the budget of an attack, and the drive has none"),
     (["--duration", "0"], "--duration"),
     (["--n", "0"], "--n"),
 ])
@@ -56,6 +57,20 @@ def test_bad_drive_input_is_one_line_and_exit_2(argv, message, capsys):
     assert main(["drive", *argv]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and message in err[0]
+
+
+def test_an_initial_speed_in_km_per_h_is_one_line(designs, tmp_path, capsys):
+    """72 (km/h meant) would start the car at 3.7x the fastest safe speed of its designs."""
+    text = scenario_path("dry_to_snow").read_text()
+    old = "  initial_speed_mps: 0.0  #"
+    assert old in text
+    path = tmp_path / "fast.yaml"
+    path.write_text(text.replace(old, "  initial_speed_mps: 72.0  #"))
+    assert main(["drive", "--scenario", str(path), "--designs", designs]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1, err
+    assert "initial_speed_mps = 72 m/s is above the fastest safe speed" in err[0]
+    assert "72 km/h is 20.00 m/s" in err[0]
 
 
 def test_seed_none_draws_fresh_noise_and_records_the_seed_to_replay_it(designs, capsys):

@@ -148,6 +148,11 @@ def run(args) -> int:
                     eps=args.eps, seed=None if args.seed == "none" else args.seed,
                     duration=args.duration, interval=args.interval) for p in pipelines]
     first = _scenario_for(**choices[0])
+    if args.eps is not None and first.attack.kind not in ("sa", "ea"):
+        from drake_cert.errors import ConfigError
+
+        raise ConfigError(f"--eps {args.eps:g} is the budget of an attack, and the drive has "
+                          f"none (attack {first.attack.kind!r}): give --attack sa or ea with it")
     seed_source = "scenario"
     if args.seed == "none" or first.seed is None:  # one draw, shared by every pipeline
         from systems.driving import entropy_seed
@@ -156,6 +161,7 @@ def run(args) -> int:
         choices = [dict(c, seed=seed) for c in choices]
     common = _setup(args)
     from systems.driving import (
+        check_initial_speed,
         check_look_ahead,
         check_perception_budget,
         check_route_is_seen,
@@ -165,6 +171,7 @@ def run(args) -> int:
     table, _ = moving_envelope(common["designs"], common["conditions"], first.perception.preset)
     check_route_is_seen(first, table)
     check_look_ahead(first, table)
+    check_initial_speed(first, table)
     for choice in choices:
         check_perception_budget(_scenario_for(**choice), common["conditions"], table)
     if len(choices) == 1:

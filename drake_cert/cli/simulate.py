@@ -25,6 +25,7 @@ from drake_cert.io import atomic_write_bytes, check_writable, provenance
 STIFFNESS_CHOICES = ("lo", "mid", "hi", "ends")
 ROAD_CHOICES = ("curve", "s_curve", "curvature_step", "straight")  # systems.road.ROAD_KINDS
 FRICTION_MAX = 2.0  # the conditions file accepts friction_mu in (0, 2]
+RADIUS_MAX_M = 10_000.0  # m: a larger radius is a straight road for the lateral loop
 DURATION_MAX_S = 3600.0  # longer episodes are a typo, not a study
 OFF_ROAD_M = 5.0  # systems.closed_loop.OFF_ROAD_M (not imported: --help stays fast)
 
@@ -126,6 +127,10 @@ def check(args) -> None:
     if args.friction is not None and args.friction > FRICTION_MAX:
         raise ConfigError(f"--friction {args.friction:g} is outside (0, {FRICTION_MAX:g}], the "
                           "range the conditions file accepts")
+    if args.radius is not None and args.radius > RADIUS_MAX_M:
+        raise ConfigError(f"--radius {args.radius:g} m is implausibly large for a road curve, "
+                          f"above {RADIUS_MAX_M:g} m (mm? write {args.radius / 1000:g}; a "
+                          "straight road is --road straight)")
     if args.radius is not None and args.radius <= OFF_ROAD_M:
         raise ConfigError(f"--radius {args.radius:g} m must exceed {OFF_ROAD_M:g} m (the road "
                           "frame about the arc breaks down as |e1| approaches the radius)")
