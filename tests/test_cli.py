@@ -26,6 +26,18 @@ def test_help_lists_every_command():
         assert name in out.stdout
 
 
+def test_help_speaks_to_a_user_not_a_developer(capsys):
+    """The top-level help says what the tool does and where to start, in plain text."""
+    try:
+        cli.main(["--help"])
+    except SystemExit as e:
+        assert e.code == 0
+    out = " ".join(capsys.readouterr().out.split())  # whatever the terminal's width
+    assert "``" not in out  # no reStructuredText from a module docstring
+    assert "Certified robust perception-based lateral control" in out
+    assert "drake-cert synthesize --out designs.yaml" in out
+
+
 def test_progress_off_a_terminal_is_ascii_lines_at_most_a_minute_apart(capsys):
     from drake_cert.cli.progress import progress_bar
 
