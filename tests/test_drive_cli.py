@@ -59,6 +59,15 @@ def test_bad_drive_input_is_one_line_and_exit_2(argv, message, capsys):
     assert len(err) == 1 and message in err[0]
 
 
+def test_an_unknown_preset_in_a_scenario_file_names_the_file_at_once(tmp_path, capsys):
+    text = scenario_path("dry_to_snow").read_text()
+    path = tmp_path / "kitti.yaml"
+    path.write_text(text.replace("  preset: robotcar-like", "  preset: kitti"))
+    assert main(["drive", "--scenario", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{path}: perception.preset: unknown preset 'kitti'" in err[0]
+
+
 def test_an_initial_speed_in_km_per_h_is_one_line(designs, tmp_path, capsys):
     """72 (km/h meant) would start the car at 3.7x the fastest safe speed of its designs."""
     text = scenario_path("dry_to_snow").read_text()

@@ -70,9 +70,17 @@ def check(args) -> None:
     _check_outputs(args)
     if args.vehicle:
         load_vehicle(args.vehicle)
-    from systems.scenario import load_scenario
+    from drake_cert.config import load_conditions
+    from drake_cert.errors import ConfigError
+    from systems.scenario import load_scenario, scenario_path
 
-    load_scenario(args.scenario)
+    scenario = load_scenario(args.scenario)
+    if args.designs is None:  # a design file may carry conditions of its own: checked later
+        try:
+            load_conditions().preset(scenario.perception.preset)
+        except ConfigError as e:  # name the file the preset came from
+            raise ConfigError(f"{scenario_path(args.scenario)}: perception.preset: {e}"
+                              ) from None
 
 
 def _check_outputs(args) -> None:
