@@ -47,9 +47,11 @@ def test_synthesized_table_round_trips_and_passes_verify(default_design_table, t
     out = capsys.readouterr()
     assert "20 claims hold: 20 safe speeds, 0 ranges certified to have none" in out.err
     assert "l1_condition=" in out.out and "steady_state_lane_margin_m=" in out.out
-    # no reference files: checked against the file's own inputs, completeness not checked
+    # no reference files: checked against the file's own inputs, completeness against the
+    # conditions it embeds (a table missing a label range does not pass as a whole)
     assert "own embedded vehicle, settings and conditions" in out.err
-    assert "complete" not in out.err
+    assert "complete: a design for each of the 20 label ranges of the embedded conditions" \
+        in out.err
 
 
 def test_unstabilising_gain_fails_naming_gain_decay(table_file, tmp_path, capsys):
@@ -250,6 +252,20 @@ def test_the_synthesized_table_without_the_snow_design_lacks_the_ranges_that_hol
     assert [m for _, m in failures] == [
         "no design for label range snow (presets robotcar-like, weather)",
         "no design for label range heavy_rain+snow (preset weather)"]
+
+
+def test_plain_verify_of_a_table_missing_one_label_range_fails(table_file, tmp_path, capsys):
+    """Without reference files, a table is checked complete against the conditions it embeds:
+    19 designs that all hold do not make a table that holds."""
+    def drop(raw):
+        raw["designs"] = [d for d in raw["designs"] if d["labels"] != ["heavy_rain", "snow"]]
+
+    path = str(_tampered(table_file, tmp_path, drop))
+    assert cli.main(["verify", path]) == 1
+    err = capsys.readouterr().err
+    assert "incomplete table: no design for label range heavy_rain+snow" in err
+    assert "--no-complete verifies the designs it holds alone" in err
+    assert "claims hold" not in err
 
 
 def test_a_cut_table_fails_completeness_unless_told_not_to_check_it(table_file, tmp_path,

@@ -7,7 +7,8 @@ copies must equal them (else exit 1 naming the field) and every condition is rec
 them; without them verify checks the file against its own embedded inputs and says so on
 stderr (a self-consistent edit of the file would pass).
 
-Completeness (``--complete``, on by default when ``--conditions`` is given): the table must
+Completeness (``--complete``, on by default when ``--conditions`` is given or a table of more
+than one design embeds its conditions; ``--no-complete`` verifies the designs alone): the table must
 hold a design for every label range the conditions define, i.e. every run of consecutive
 labels of a preset in its friction order, singles and the whole family included (what
 ``drake-cert synthesize`` writes and the run time selects from); each missing range is named
@@ -37,7 +38,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--complete", action=argparse.BooleanOptionalAction, default=None,
                         help="fail (exit 1) when the table lacks a design for a label range of "
                              "the conditions (the reference --conditions, else the embedded "
-                             "ones); default: on when --conditions is given, else off")
+                             "ones); default: on when --conditions is given or a table of "
+                             "more than one design embeds its conditions (--no-complete: "
+                             "the designs alone)")
     parser.add_argument("--json", action="store_true",
                         help="print the verification report as JSON on stdout (verdict, "
                              "per-design verdicts, completeness, switching)")
@@ -105,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"drake-cert verify: {where} fails {condition}: {message}", file=sys.stderr)
     for _, message in report.completeness_failures:
         print(f"drake-cert verify: incomplete table: {message}", file=sys.stderr)
+    if report.completeness_failures:
+        print("drake-cert verify: (--no-complete verifies the designs it holds alone)",
+              file=sys.stderr)
     if not report.ok:
         return 1
     complete = (f"; complete: a design for each of the {report.label_ranges} label ranges of "
