@@ -749,12 +749,11 @@ def completeness_reference(table: DesignTable, conditions: ConditionsTable | Non
                            complete: bool | None) -> str:
     """Which conditions completeness is checked against: ``"reference conditions"``,
     ``"embedded conditions"`` or ``""`` (not checked). ``complete=None`` checks it when
-    reference ``conditions`` are given or the table (more than one design) embeds its own, so
-    a table missing a label range does not pass as a whole; :class:`ConfigError` when it is
-    asked for and the file embeds no conditions and none are given."""
+    reference ``conditions`` are given (the command line also turns it on for a table that
+    embeds its conditions); :class:`ConfigError` when it is asked for and the file embeds no
+    conditions and none are given."""
     if complete is None:
-        complete = conditions is not None or (table.conditions is not None
-                                              and len(table.designs) > 1)
+        complete = conditions is not None
     if not complete:
         return ""
     if conditions is not None:

@@ -80,6 +80,10 @@ def run(args: argparse.Namespace) -> int:
         "settings": load_settings(args.settings) if args.settings else None,
         "conditions": load_conditions(args.conditions) if args.conditions else None,
     }
+    if args.complete is None and references["conditions"] is None:
+        # a table (more than one design) that embeds its conditions is checked complete
+        # against them, so one missing a label range does not pass as a whole
+        args.complete = table.conditions is not None and len(table.designs) > 1 or None
     completeness_reference(table, references["conditions"], args.complete)  # exit 2 early
     with progress_bar(total=len(table.designs), desc="verify", unit="design",
                       leave=False) as bar:
