@@ -83,6 +83,7 @@ def run(args) -> int:
         load_model_file,
         model_path,
         sigma_tag,
+        training_of,
     )
 
     sigma = check_sigma(args.sigma)
@@ -124,7 +125,7 @@ def run(args) -> int:
 
         rows = sweep.evaluate_candidate(model, test, settings, table, progress)
         sweep.write_json(store, {"sha256": sha, "settings": identity, "rows": rows,
-                                 "training": model.meta.get("training", {"method": "gaussian"}),
+                                 "training": training_of(model),
                                  "file": str(paths[cand.name])})
         results[cand.name] = rows
     choice = sweep.pick_candidate(results, settings)
