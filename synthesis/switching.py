@@ -254,7 +254,8 @@ def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[Controller
                                 family: str = TABLE_FAMILY) -> SwitchingCertificate:
     """Switching certificate for the designs with a safe speed among ``designs``.
 
-    Looks for a common P first: bisection (to 1e-3/s) for the largest decay lambda in
+    Looks for a common P first: bisection (to 1e-3/s, from ``settings.decay_rate`` when P
+    exists there, as it does for jointly synthesized gains) for the largest decay lambda in
     ``[0, min over corners of -max Re eig]`` at which the corner LMIs (module docstring, with
     the margin ``settings.lmi_margin`` and ``P >= I``) are feasible, then the best-conditioned P
     at that lambda. If even lambda = 0 is infeasible, falls back to the dwell certificate
@@ -278,6 +279,10 @@ def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[Controller
         return dwell_certificate(vehicle, covered, settings, family, modes=modes, start=start)
     upper = min(-float(np.linalg.eigvals(m).real.max()) for m in matrices)
     good, bad = 0.0, upper
+    if syn.decay_rate < upper:  # jointly synthesized gains hold there by construction
+        trial = problem.solve(syn.decay_rate)
+        if trial is not None:
+            good, p = syn.decay_rate, trial
     while bad - good > DECAY_BISECTION_TOLERANCE:
         mid = 0.5 * (good + bad)
         trial = problem.solve(mid)

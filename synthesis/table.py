@@ -10,11 +10,14 @@ import dataclasses
 import math
 from collections.abc import Callable, Iterable
 
+import numpy as np
+
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError, InfeasibleDesign
 from synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
 from synthesis.design import ControllerDesign
 from synthesis.gains import synthesize_state_feedback
+from synthesis.joint_gains import GAIN_SYNTHESES, JOINT, common_lyapunov_gains, gain_box
 from synthesis.speed import IntervalEvaluator, search_speed
 
 GAIN_LMI = "gain_lmi"  # failed_condition when no k_m exists for the interval
@@ -52,10 +55,34 @@ def friction_lower_bound(conditions: ConditionsTable, preset: str,
 
 @dataclasses.dataclass
 class DesignCache:
-    """Per-interval gain and condition evaluations shared between designs."""
+    """Per-interval gain and condition evaluations shared between designs, and the joint
+    gains (:func:`joint_design_gains`). One cache serves one vehicle, conditions table and
+    settings."""
 
     evaluators: dict = dataclasses.field(default_factory=dict)
     failures: dict = dataclasses.field(default_factory=dict)
+    joint: dict = dataclasses.field(default_factory=dict)
+
+
+def joint_design_gains(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
+                       cache: DesignCache | None = None) -> dict | None:
+    """Every label range's ``(k_m, gain_speed_max_mps)`` from one LMI with a common Lyapunov
+    matrix (:mod:`synthesis.joint_gains`), on the vehicle's tires; None when that LMI is
+    infeasible. Ranges with the same gain box share one gain. Cached in ``cache``."""
+    if cache is not None and JOINT in cache.joint:
+        return cache.joint[JOINT]
+    scaled = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
+    ranges = design_label_ranges(conditions)
+    boxes = {r: gain_box(scaled.hull(r), scaled.least_friction(r), settings) for r in ranges}
+    distinct = list(dict.fromkeys(boxes.values()))
+    gains = common_lyapunov_gains(vehicle, distinct, settings) if distinct else []
+    out = None
+    if gains is not None:
+        by_box = {b: (k, b.speed_hi_mps) for b, k in zip(distinct, gains, strict=True)}
+        out = {r: by_box[b] for r, b in boxes.items()}
+    if cache is not None:
+        cache.joint[JOINT] = out
+    return out
 
 
 SLIP_BOUND_FRACTIONS = (1.0, 0.8, 0.6, 0.4, 0.2)  # of normalised_slip_max, tried in order
@@ -87,7 +114,7 @@ def check_design_inputs(interval, friction_mu_lo) -> None:
 
 def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
                       friction_mu_lo: float, settings: Settings, labels=(),
-                      cache: DesignCache | None = None) -> ControllerDesign:
+                      cache: DesignCache | None = None, gain=None) -> ControllerDesign:
     """Gains, filter gain and safe speed for one stiffness interval (N/rad) and friction.
 
     ``interval`` is the cornering stiffness of THIS vehicle's tires on the road (the design
@@ -103,6 +130,10 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
     with smaller bounds). With no safe speed at any bound, the design at the smallest bound
     says which condition failed. Raises :class:`ConfigError` for an interval that is not
     two finite numbers 0 < C_lo <= C_hi, or a friction outside (0, 2].
+
+    ``gain``: ``(k_m, gain_speed_max_mps)`` fixed beforehand (the joint synthesis of
+    :func:`joint_design_gains`), certified on a box that holds every slip bound's; None
+    (default) solves this interval's own gain LMI (5.1).
     """
     check_design_inputs(interval, friction_mu_lo)
     cache = cache if cache is not None else DesignCache()
@@ -110,7 +141,7 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
     best = None
     for slip_bound in slip_bound_candidates(settings):
         design = design_for_slip_bound(vehicle, interval, friction_mu_lo, settings, labels,
-                                       cache, slip_bound)
+                                       cache, slip_bound, gain)
         if (best is None or not best.has_safe_speed
                 or (design.has_safe_speed and design.speed_mps > best.speed_mps)):
             best = design
@@ -123,17 +154,27 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
 
 def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
                           friction_mu_lo: float, settings: Settings, labels,
-                          cache: DesignCache, slip_bound: float) -> ControllerDesign:
+                          cache: DesignCache, slip_bound: float,
+                          gain=None) -> ControllerDesign:
     """:func:`synthesize_design` at one normalised slip bound z_b.
 
     Every condition is evaluated on the certified interval ``[C_lo ratio(z_b), C_hi]``
     (:func:`synthesis.conditions.tire_stiffness_lo`), whose midpoint is ``C_hat``. An interval
     whose gain LMI is infeasible gives speed 0, ``failed_condition = 'gain_lmi'``, ``k_m = 0``.
+    ``gain``: a fixed ``(k_m, gain_speed_max_mps)`` instead of the interval's own LMI.
     """
     label_interval = (float(interval[0]), float(interval[1]))
     certified = (tire_stiffness_lo(label_interval[0], slip_bound), label_interval[1])
     c_hat = 0.5 * (certified[0] + certified[1])
     law = settings.controller.adaptation_law
+    if gain is not None:
+        k_fixed, v_fixed = np.asarray(gain[0], dtype=float), float(gain[1])
+        key = (certified, tuple(k_fixed), v_fixed)
+        if key not in cache.evaluators:
+            cache.evaluators[key] = IntervalEvaluator(vehicle, settings, certified, k_fixed,
+                                                      v_fixed)
+        return _searched_design(cache.evaluators[key], labels, label_interval, c_hat,
+                                friction_mu_lo, slip_bound, law)
     if certified not in cache.evaluators and certified not in cache.failures:
         try:
             k_m, v_hi = synthesize_state_feedback(vehicle, certified, settings.synthesis)
@@ -146,7 +187,12 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
                                 float(friction_mu_lo), [0.0] * 4, 0.0,
                                 settings.synthesis.filter_gain_max, 0.0, GAIN_LMI, {},
                                 float(slip_bound), law)
-    evaluator = cache.evaluators[certified]
+    return _searched_design(cache.evaluators[certified], labels, label_interval, c_hat,
+                            friction_mu_lo, slip_bound, law)
+
+
+def _searched_design(evaluator: IntervalEvaluator, labels, label_interval, c_hat,
+                     friction_mu_lo, slip_bound, law) -> ControllerDesign:
     result = search_speed(evaluator, friction_mu_lo, slip_bound)
     return ControllerDesign(
         labels=list(labels),
@@ -166,8 +212,8 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
 
 
 def synthesize_label_range(vehicle: VehicleParams, conditions: ConditionsTable, labels,
-                           settings: Settings, cache: DesignCache | None = None
-                           ) -> ControllerDesign:
+                           settings: Settings, cache: DesignCache | None = None,
+                           gains: str = JOINT) -> ControllerDesign:
     """The design ``drake-cert synthesize`` writes for the label range ``labels`` (names,
     grippiest first, e.g. ``["rain", "snow"]``) and this vehicle: the range's stiffness hull in
     the conditions table times the vehicle's ``tire_stiffness_scale`` (the tires the vehicle
@@ -176,6 +222,11 @@ def synthesize_label_range(vehicle: VehicleParams, conditions: ConditionsTable, 
 
     :func:`synthesize_design` takes the interval of the vehicle's own tires; this function
     applies the vehicle file's tires to the road conditions, as the design table does.
+
+    ``gains``: ``"joint"`` (default: the gain from the LMI shared by every range of
+    ``conditions``, :func:`joint_design_gains`, so the design equals the table's) or
+    ``"separate"`` (the range's own gain LMI). Joint falls back to separate, for every range
+    alike, when the joint LMI is infeasible.
     """
     labels = tuple(labels)
     ranges = design_label_ranges(conditions)
@@ -183,20 +234,26 @@ def synthesize_label_range(vehicle: VehicleParams, conditions: ConditionsTable, 
         raise ConfigError(f"label range {'+'.join(labels) or '(empty)'} is not one the "
                           f"conditions table defines (contiguous runs of a preset's labels, "
                           f"grippiest first): {', '.join('+'.join(r) for r in ranges)}")
+    if gains not in GAIN_SYNTHESES:
+        raise ConfigError(f"gains = {gains!r} must be one of {', '.join(GAIN_SYNTHESES)}")
+    cache = cache if cache is not None else DesignCache()
+    joint = joint_design_gains(vehicle, conditions, settings, cache) if gains == JOINT else None
     scaled = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
     return synthesize_design(vehicle, scaled.hull(labels), scaled.least_friction(labels),
-                             settings, labels, cache)
+                             settings, labels, cache, joint[labels] if joint else None)
 
 
 def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
-                     progress: Callable[[Iterable], Iterable] | None = None
-                     ) -> list[ControllerDesign]:
+                     progress: Callable[[Iterable], Iterable] | None = None,
+                     gains: str = JOINT) -> list[ControllerDesign]:
     """One design per label range (see :func:`design_label_ranges`), in that order.
 
     ``progress`` wraps the iteration over label ranges (e.g. ``tqdm``). The label intervals
-    are the table's times ``vehicle.tire_stiffness_scale`` (friction unchanged).
+    are the table's times ``vehicle.tire_stiffness_scale`` (friction unchanged). ``gains``:
+    ``"joint"`` (default; one common Lyapunov matrix for every design, docs/design.md 5.6,
+    falling back to ``"separate"`` when that LMI is infeasible) or ``"separate"``.
     """
     cache = DesignCache()
     ranges = design_label_ranges(conditions)
-    return [synthesize_label_range(vehicle, conditions, labels, settings, cache)
+    return [synthesize_label_range(vehicle, conditions, labels, settings, cache, gains)
             for labels in (progress(ranges) if progress is not None else ranges)]

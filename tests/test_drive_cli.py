@@ -184,17 +184,17 @@ def test_an_assumed_shortest_stretch_within_the_road_between_two_frames_is_refus
 
 def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supports(
         designs, tmp_path, capsys):
-    # 40 m at 5 Hz: braking at 3.6 m/s^2 from v to the envelope's 6.23 m/s, 2 m margin and
+    # 40 m at 5 Hz: braking at 3.6 m/s^2 from v to the envelope's 7.00 m/s, 2 m margin and
     # 0.35 s on an unmoved frontier plus one period (the decided road trails the newest look
-    # point by one tolerated wrong frame, DESIGN 6.3) carry v^2 + 3.96 v = 6.23^2 + 7.2 * 38,
-    # v = 15.81 m/s; the sunny design's 19.36 m/s needs 46.67 + 2 + 10.65 = 59.3 m
+    # point by one tolerated wrong frame, DESIGN 6.3) carry v^2 + 3.96 v = 7.00^2 + 7.2 * 38,
+    # v = 16.09 m/s; the sunny design's 19.36 m/s needs 55.9 + 2 = 57.9 m
     text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 60.0", "  look_ahead_m: 40.0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 15.81 m/s" in err and "19.36 m/s" in err and "59.3 m" in err
-    # tolerating no wrong frame, the old figures: 16.46 m/s and 55.4 m
+    assert "supports at most 16.09 m/s" in err and "19.36 m/s" in err and "57.9 m" in err
+    # tolerating no wrong frame: v^2 + 2.52 v = 7.00^2 + 7.2 * 38, 16.75 m/s and 54.0 m
     text = text.replace("tolerated_wrong_frames: 1", "tolerated_wrong_frames: 0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 16.46 m/s" in err and "55.4 m" in err
+    assert "supports at most 16.75 m/s" in err and "54.0 m" in err
 
 
 def test_drive_help_names_every_shipped_scenario(capsys):

@@ -48,8 +48,12 @@ def test_the_api_designs_a_label_range_for_the_vehicles_own_tires_as_the_cli_doe
     `drake-cert synthesize` writes) for that range, not the design of the table's tires."""
     conditions = _heavy_rain_only(CONDITIONS)
     (from_table,) = synthesize_table(SUV, conditions, SETTINGS)
-    design = synthesize_label_range(SUV, CONDITIONS, ["heavy_rain"], SETTINGS)
+    design = synthesize_label_range(SUV, conditions, ["heavy_rain"], SETTINGS)
     assert dataclasses.asdict(design) == dataclasses.asdict(from_table)
+    separate = synthesize_label_range(SUV, CONDITIONS, ["heavy_rain"], SETTINGS,
+                                      gains="separate")  # the range's own LMI: no table needed
+    (separate_table,) = synthesize_table(SUV, conditions, SETTINGS, gains="separate")
+    assert dataclasses.asdict(separate) == dataclasses.asdict(separate_table)
     lo, _ = CONDITIONS.condition("heavy_rain").interval
     assert design.stiffness_lo_n_per_rad == pytest.approx(SUV.tire_stiffness_scale * lo)
     with pytest.raises(ConfigError, match=r"sunny\+snow is not one the conditions table"):

@@ -69,13 +69,16 @@ def _paths(argv: list[str]) -> dict[str, str]:
 def example(default_design_table):
     """(conditions YAML, a complete design table, the same without its snow design): the
     shipped conditions with :data:`PRESET` as their one preset and the session's synthesized
-    designs of its ranges (no switching section: verify notes that, it does not fail on it)."""
+    designs of its ranges, with their switching certificate (the cut table keeps it: a
+    certificate covering more designs than the table holds still proves their switching)."""
+    from synthesis.design_io import with_switching_certificates
+
     conditions = dataclasses.replace(load_conditions(), presets=[Preset(**PRESET)])
     ranges = design_label_ranges(conditions)
     designs = [d for d in default_design_table.designs if tuple(d.labels) in ranges]
     assert len(designs) == len(ranges) == 3
-    table = dataclasses.replace(default_design_table, designs=designs, conditions=conditions,
-                                switching=None)
+    table = with_switching_certificates(dataclasses.replace(
+        default_design_table, designs=designs, conditions=conditions, switching=None))
     cut = dataclasses.replace(table, designs=[d for d in designs if d.labels != ["snow"]])
     return (yaml.safe_dump(dataclasses.asdict(conditions)), dump_design_table(table),
             dump_design_table(cut))

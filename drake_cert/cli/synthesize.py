@@ -6,7 +6,9 @@ table (or ``--json`` on stdout). ``--out FILE`` writes the design table as YAML 
 with schema version and provenance) for ``drake-cert verify`` and the simulator. Exit 0 on
 success, also when some ranges have no safe speed (they say which condition failed); 1 when
 no range has a safe speed (nothing is written; the message names the binding condition,
-almost always the sign of a unit mistake in a vehicle file); 2 on bad input.
+almost always the sign of a unit mistake in a vehicle file); 2 on bad input. The switching
+certificate of each preset (docs/design.md 5.6) is computed and summarised on stderr, and
+written with the table.
 """
 
 from __future__ import annotations
@@ -28,6 +30,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="write the design table here (YAML); default: print only")
     parser.add_argument("--json", action="store_true",
                         help="print the designs as JSON on stdout (machine-readable)")
+    parser.add_argument("--gains", choices=("joint", "separate"), default="joint",
+                        help="joint (default): every design's gain from one LMI with a common "
+                             "Lyapunov matrix, so switching among them is stable at any rate; "
+                             "separate: one LMI per range (then switching rests on an average "
+                             "dwell time the car enforces)")
 
 
 def design_record(design) -> dict:
@@ -67,6 +74,20 @@ def format_table(designs) -> str:
                      + r[5] for r in rows)
 
 
+def format_switching(certificates) -> str:
+    """One line per preset: the switching certificate's method, decay rate and dwell."""
+    lines = []
+    for c in certificates:
+        if c.method == "none":
+            lines.append(f"switching ({c.family}): no design with a safe speed")
+            continue
+        what = ("common Lyapunov matrix, any switching rate" if c.method == "common" else
+                f"average dwell {c.dwell_time_s:.3g} s (the car enforces it)")
+        lines.append(f"switching ({c.family}): {c.method}: {what}; decay "
+                     f"{c.decay_rate_per_s:.3g}/s over {len(c.designs_covered)} designs")
+    return "\n".join(lines)
+
+
 def binding_condition(designs) -> str:
     """The condition that fails most often among designs without a safe speed (first on ties)."""
     failed = [d.failed_condition for d in designs if d.failed_condition]
@@ -90,7 +111,7 @@ def run(args: argparse.Namespace) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.errors import ConfigError
     from drake_cert.io import provenance
-    from synthesis.design_io import DesignTable, save_design_table
+    from synthesis.design_io import DesignTable, save_design_table, with_switching_certificates
     from synthesis.table import synthesize_table
 
     if not hasattr(args, "loaded"):
@@ -100,7 +121,7 @@ def run(args: argparse.Namespace) -> int:
     def progress(ranges):
         return progress_bar(ranges, desc="synthesize", unit="range", leave=False)
 
-    designs = synthesize_table(vehicle, conditions, settings, progress)
+    designs = synthesize_table(vehicle, conditions, settings, progress, gains=args.gains)
     if not any(d.has_safe_speed for d in designs):
         print(format_table(designs))
         print(f"drake-cert synthesize: no design has a safe speed; binding condition: "
@@ -108,7 +129,8 @@ def run(args: argparse.Namespace) -> int:
               "nothing written", file=sys.stderr)
         return 1
     prov = provenance(seed=None)  # deterministic: no seed
-    table = DesignTable(designs, vehicle, settings, prov, conditions)
+    table = with_switching_certificates(DesignTable(designs, vehicle, settings, prov, conditions))
+    print(format_switching(table.switching), file=sys.stderr)
     if args.out:
         try:
             save_design_table(args.out, table)
@@ -116,8 +138,12 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"cannot write --out {args.out}: {e.strerror}") from None
         print(f"wrote {len(designs)} designs to {args.out}", file=sys.stderr)
     if args.json:
+        from synthesis.switching import certificate_to_dict
+
         json.dump({"schema_version": prov["schema_version"], "provenance": prov,
-                   "designs": [design_record(d) for d in designs]}, sys.stdout, indent=1)
+                   "designs": [design_record(d) for d in designs],
+                   "switching": [certificate_to_dict(c) for c in table.switching]},
+                  sys.stdout, indent=1)
         print()
     else:
         print(format_table(designs))

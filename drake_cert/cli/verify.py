@@ -14,8 +14,10 @@ labels of a preset in its friction order, singles and the whole family included 
 ``drake-cert synthesize`` writes and the run time selects from); each missing range is named
 on its own line. ``--json`` prints the report on stdout: the verdict, per design its label
 range, interval, speed, whether it holds and why not, and the completeness and switching
-verdicts. Exit 0 when everything holds, 1 naming the first failed condition (and every
-missing label range), 2 when a file cannot be read or completeness cannot be checked.
+verdicts. A table with more than one design with a safe speed must carry its switching
+certificates (``--no-switching``: a note instead). Exit 0 when everything holds, 1 naming
+the first failed condition (and every missing label range), 2 when a file cannot be read or
+completeness cannot be checked.
 """
 
 from __future__ import annotations
@@ -41,6 +43,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "ones); default: on when --conditions is given or a table of "
                              "more than one design embeds its conditions (--no-complete: "
                              "the designs alone)")
+    parser.add_argument("--switching", action=argparse.BooleanOptionalAction, default=True,
+                        help="fail (exit 1) when a table with more than one design with a "
+                             "safe speed has no switching certificate (default; "
+                             "--no-switching: a note instead). A certificate that is present "
+                             "is always rechecked")
     parser.add_argument("--json", action="store_true",
                         help="print the verification report as JSON on stdout (verdict, "
                              "per-design verdicts, completeness, switching)")
@@ -88,7 +95,8 @@ def run(args: argparse.Namespace) -> int:
     with progress_bar(total=len(table.designs), desc="verify", unit="design",
                       leave=False) as bar:
         report = verify_design_table(table, lambda i, n: bar.update(1),
-                                     complete=args.complete, **references)
+                                     complete=args.complete, require_switching=args.switching,
+                                     **references)
     if report.checked_against == "embedded":
         print("drake-cert verify: checked against the design file's own embedded vehicle, "
               "settings and conditions (give --vehicle/--settings/--conditions to check "
