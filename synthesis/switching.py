@@ -102,6 +102,10 @@ class SwitchingCertificate:
     time must exceed it); ``lyapunov_matrix``: the common P (4 x 4, smallest eigenvalue 1),
     None for "dwell"; ``modes``: the per-mode matrices (dwell only); ``jump_factor``: mu (1 for
     common); ``condition_number``: of P (common) or the largest of the P_m;
+    ``loop_lyapunov_matrix``: P_z (5 x 5) common to the designs' L1 reference loops with the
+    filter state (:mod:`synthesis.loop_switching`), None when there is none (the gradient law,
+    or none found); ``loop_decay_rate_per_s``: the rate lambda_z it proves on its grid;
+    ``loop_law``: the adaptation law whose reference loops it covers;
     ``solve_time_s``: wall time of the solve (informative: not checked, not saved).
     """
 
@@ -114,6 +118,9 @@ class SwitchingCertificate:
     modes: tuple[SwitchingMode, ...] = ()
     jump_factor: float = 1.0
     condition_number: float = 1.0
+    loop_lyapunov_matrix: tuple[tuple[float, ...], ...] | None = None
+    loop_decay_rate_per_s: float = 0.0
+    loop_law: str = ""
     solve_time_s: float = dataclasses.field(default=0.0, compare=False)
 
 
@@ -249,6 +256,27 @@ def _as_rows(p: np.ndarray) -> tuple[tuple[float, ...], ...]:
     return tuple(tuple(float(x) for x in row) for row in p)
 
 
+def with_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
+                          settings: Settings | SynthesisSettings,
+                          certificate: SwitchingCertificate) -> SwitchingCertificate:
+    """``certificate`` with the common Lyapunov matrix of the designs' L1 reference loops
+    (:func:`synthesis.loop_switching.loop_lyapunov_matrix`) for the adaptation law of
+    ``settings`` (a :class:`Settings`; with only its synthesis part, or without a design to
+    switch among, the certificate is returned as it is)."""
+    from synthesis.loop_switching import loop_lyapunov_matrix
+
+    if not isinstance(settings, Settings) or certificate.method == NONE:
+        return certificate
+    law = settings.controller.adaptation_law
+    found = loop_lyapunov_matrix(vehicle, designs, settings.synthesis.speed_min_mps, law,
+                                 settings.synthesis.lmi_margin)
+    if found is None:
+        return dataclasses.replace(certificate, loop_law=law)
+    p, rate = found
+    return dataclasses.replace(certificate, loop_lyapunov_matrix=_as_rows(p),
+                               loop_decay_rate_per_s=rate, loop_law=law)
+
+
 def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
                                 settings: Settings | SynthesisSettings,
                                 family: str = TABLE_FAMILY) -> SwitchingCertificate:
@@ -259,8 +287,10 @@ def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[Controller
     ``[0, min over corners of -max Re eig]`` at which the corner LMIs (module docstring, with
     the margin ``settings.lmi_margin`` and ``P >= I``) are feasible, then the best-conditioned P
     at that lambda. If even lambda = 0 is infeasible, falls back to the dwell certificate
-    (:func:`dwell_certificate`). The stored decay rate is the one the returned P proves at
-    every corner (generalized eigenvalues), rounded down, so the check holds by construction.
+    (:func:`dwell_certificate`). Either way the L1 reference loops' matrix is added
+    (:func:`with_loop_certificate`) when ``settings`` is a :class:`Settings`. The stored
+    decay rate is the one the returned P proves at every corner (generalized eigenvalues),
+    rounded down, so the check holds by construction.
     ``settings``: :class:`Settings` or its ``synthesis`` part (decay_rate, lmi_margin,
     speed_min_mps are used). Raises :class:`InfeasibleDesign` if no matrices are found for
     the modes at any trial rate (a solver failure: each mode's own gain LMI holds).
@@ -276,7 +306,8 @@ def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[Controller
     problem = _CommonProblem(matrices, syn.lmi_margin)
     p = problem.solve(0.0)
     if p is None:
-        return dwell_certificate(vehicle, covered, settings, family, modes=modes, start=start)
+        return with_loop_certificate(vehicle, covered, settings, dwell_certificate(
+            vehicle, covered, settings, family, modes=modes, start=start))
     upper = min(-float(np.linalg.eigvals(m).real.max()) for m in matrices)
     good, bad = 0.0, upper
     if syn.decay_rate < upper:  # jointly synthesized gains hold there by construction
@@ -291,10 +322,10 @@ def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[Controller
         else:
             good, p = mid, trial
     decay = _round_down(min(certified_rate(p, m) for m in matrices))
-    return SwitchingCertificate(
+    certificate = with_loop_certificate(vehicle, covered, settings, SwitchingCertificate(
         family, COMMON, keys, decay, 0.0, lyapunov_matrix=_as_rows(p),
-        condition_number=float(f"{np.linalg.cond(p):.6g}"),
-        solve_time_s=time.perf_counter() - start)
+        condition_number=float(f"{np.linalg.cond(p):.6g}")))
+    return dataclasses.replace(certificate, solve_time_s=time.perf_counter() - start)
 
 
 def dwell_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
@@ -414,18 +445,28 @@ def chatter_bound(switch_times_s, average_dwell_s: float) -> float:
 
 def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) -> dict:
     """What the certificate says about one drive's switching signal (the ``drive --json``
-    fields): the method, the certified decay and average dwell, and for "dwell" the chatter
-    bound ``N_0`` at ``tau_a = 2 dwell_time_s`` (then the reference loops decay at
-    ``lambda_0 / 2`` at least) with the growth factor ``mu^N_0`` it allows."""
+    fields): the method, the certified decay and average dwell, whether the signal met the
+    certificate (``switching_certificate_met``: always for "common" and "none"; for "dwell"
+    when the chatter bound at ``tau_a = dwell_time_s`` is at most 1, i.e. consecutive
+    switches at least ``dwell_time_s`` apart), for "dwell" the chatter bound ``N_0`` at
+    ``tau_a = 2 dwell_time_s`` (then the reference loops decay at ``lambda_0 / 2`` at least)
+    with the growth factor ``mu^N_0`` it allows, and the L1 reference loops' certificate
+    (``loop_switching_decay_per_s``: lambda_z, 0 when there is none)."""
     times = list(switch_times_s)
     out = {"switching_method": certificate.method,
            "switching_decay_per_s": certificate.decay_rate_per_s,
-           "certified_average_dwell_s": certificate.dwell_time_s}
+           "certified_average_dwell_s": certificate.dwell_time_s,
+           "loop_switching_decay_per_s": (certificate.loop_decay_rate_per_s
+                                          if certificate.loop_lyapunov_matrix is not None
+                                          else 0.0)}
     if certificate.method == DWELL and certificate.dwell_time_s > 0:
         n0 = chatter_bound(times, 2.0 * certificate.dwell_time_s)
-        out.update(chatter_bound_n0=n0, lyapunov_growth_bound=certificate.jump_factor ** n0)
+        out.update(chatter_bound_n0=n0, lyapunov_growth_bound=certificate.jump_factor ** n0,
+                   switching_certificate_met=chatter_bound(times,
+                                                           certificate.dwell_time_s) <= 1.0)
     else:  # common P (or nothing switches): any switching signal is covered
-        out.update(chatter_bound_n0=0.0, lyapunov_growth_bound=1.0)
+        out.update(chatter_bound_n0=0.0, lyapunov_growth_bound=1.0,
+                   switching_certificate_met=True)
     return out
 
 
@@ -516,7 +557,26 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
         if certificate.dwell_time_s < need * (1.0 - JUMP_TOLERANCE):
             failures.append(f"{name}: dwell time {certificate.dwell_time_s} s is below "
                             f"ln(mu) / (2 lambda_0) = {need:.6g} s")
-    return failures
+    return failures + _loop_failures(vehicle, covered, settings, certificate, name)
+
+
+def _loop_failures(vehicle, covered, settings, certificate, name) -> list[str]:
+    """The L1 reference loops' matrix, when stored: for the law of ``settings`` (when known)
+    and rechecked by :func:`synthesis.loop_switching.check_loop_certificate`."""
+    from synthesis.loop_switching import check_loop_certificate
+
+    if certificate.loop_lyapunov_matrix is None:
+        return []
+    law = certificate.loop_law
+    if isinstance(settings, Settings) and law != settings.controller.adaptation_law:
+        return [f"{name}: the loop matrix is for the {law!r} law, the settings run "
+                f"{settings.controller.adaptation_law!r}"]
+    if certificate.loop_decay_rate_per_s <= 0.0:
+        return [f"{name}: loop_decay_rate_per_s = {certificate.loop_decay_rate_per_s} must be "
+                "positive"]
+    return check_loop_certificate(vehicle, covered, _synthesis(settings).speed_min_mps, law,
+                                  certificate.loop_lyapunov_matrix,
+                                  certificate.loop_decay_rate_per_s, name)
 
 
 def _lmi_max_eig(p, m, decay) -> float:
@@ -566,6 +626,11 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
     }
     if certificate.lyapunov_matrix is not None:
         out["lyapunov_matrix"] = [list(row) for row in certificate.lyapunov_matrix]
+    if certificate.loop_lyapunov_matrix is not None:
+        out["loop_lyapunov_matrix"] = [list(row) for row in certificate.loop_lyapunov_matrix]
+        out["loop_decay_rate_per_s"] = float(certificate.loop_decay_rate_per_s)
+    if certificate.loop_law:
+        out["loop_law"] = certificate.loop_law
     if certificate.modes:
         out["modes"] = [{"designs": list(m.designs),
                          "lyapunov_matrix": [list(row) for row in m.lyapunov_matrix]}
@@ -574,7 +639,8 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
 
 
 _CERT_REQUIRED = ("family", "method", "designs_covered", "decay_rate_per_s", "dwell_time_s")
-_CERT_OPTIONAL = ("lyapunov_matrix", "modes", "jump_factor", "condition_number")
+_CERT_OPTIONAL = ("lyapunov_matrix", "modes", "jump_factor", "condition_number",
+                  "loop_lyapunov_matrix", "loop_decay_rate_per_s", "loop_law")
 
 
 def certificate_from_dict(data, where: str) -> SwitchingCertificate:
@@ -597,13 +663,19 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
         raise ValueError(f"{where}.designs_covered must be a list of design names")
     numbers = {}
     for key, default in (("decay_rate_per_s", None), ("dwell_time_s", None),
-                         ("jump_factor", 1.0), ("condition_number", 1.0)):
+                         ("jump_factor", 1.0), ("condition_number", 1.0),
+                         ("loop_decay_rate_per_s", 0.0)):
         value = data.get(key, default)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or math.isnan(value):
             raise ValueError(f"{where}.{key} = {value!r} must be a number")
         numbers[key] = float(value)
     matrix = (_matrix(data["lyapunov_matrix"], f"{where}.lyapunov_matrix")
               if "lyapunov_matrix" in data else None)
+    loop = (_matrix(data["loop_lyapunov_matrix"], f"{where}.loop_lyapunov_matrix", 5)
+            if "loop_lyapunov_matrix" in data else None)
+    loop_law = data.get("loop_law", "")
+    if not isinstance(loop_law, str):
+        raise ValueError(f"{where}.loop_law must be a string")
     modes = data.get("modes", [])
     if not isinstance(modes, list):
         raise ValueError(f"{where}.modes must be a list")
@@ -622,14 +694,15 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
         family=data["family"], method=data["method"], designs_covered=tuple(covered),
         decay_rate_per_s=numbers["decay_rate_per_s"], dwell_time_s=numbers["dwell_time_s"],
         lyapunov_matrix=matrix, modes=tuple(parsed_modes), jump_factor=numbers["jump_factor"],
-        condition_number=numbers["condition_number"])
+        condition_number=numbers["condition_number"], loop_lyapunov_matrix=loop,
+        loop_decay_rate_per_s=numbers["loop_decay_rate_per_s"], loop_law=loop_law)
 
 
-def _matrix(rows, where: str) -> tuple[tuple[float, ...], ...]:
-    ok = (isinstance(rows, list) and len(rows) == 4
-          and all(isinstance(r, list) and len(r) == 4 for r in rows)
+def _matrix(rows, where: str, size: int = 4) -> tuple[tuple[float, ...], ...]:
+    ok = (isinstance(rows, list) and len(rows) == size
+          and all(isinstance(r, list) and len(r) == size for r in rows)
           and all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x)
                   for r in rows for x in r))
     if not ok:
-        raise ValueError(f"{where} must be a 4 x 4 list of finite numbers")
+        raise ValueError(f"{where} must be a {size} x {size} list of finite numbers")
     return tuple(tuple(float(x) for x in r) for r in rows)

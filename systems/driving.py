@@ -36,9 +36,12 @@ camera whose look-ahead cannot carry the table's top speed that way.
 
 Switching: the controller switches where the design in force changes along the road; a wider
 (safer) design is never held back. ``synthesis.switching`` certifies the switched reference
-loops of the preset's designs (a common Lyapunov matrix, or an average dwell time with per-
-design matrices); each drive reports the certificate and its switching signal's chatter bound
-(``chatter_bound_n0``, ``lyapunov_growth_bound``).
+loops of the preset's designs (a common Lyapunov matrix, as the jointly synthesized gains
+have, or an average dwell time with per-design matrices) and the L1 reference loops with the
+filter state (``synthesis.loop_switching``); each drive reports the certificate
+(``switching_method``, ``loop_switching_decay_per_s``), whether its switching signal met it
+(``switching_certificate_met``) and the chatter bound (``chatter_bound_n0``,
+``lyapunov_growth_bound``).
 
 The non-robust baseline is the same Diagram with ``pipeline="base"``: the raw prediction of
 the base model f, the predicted label's own interval and design, attacked by PGD on f.

@@ -256,7 +256,8 @@ def format_summaries(summaries: list[dict]) -> str:
             ("envelope_time_fraction", "{:.3f}"),
             ("certificate_failure_bound", "{:.4f}"), ("interval", "{}"),
             ("tolerated_wrong_frames", "{}"), ("guarantee_failure_bound", "{:.4f}"),
-            ("design_switches", "{}"),
+            ("design_switches", "{}"), ("switching_method", "{}"),
+            ("switching_certificate_met", "{}"), ("loop_switching_decay_per_s", "{:.3f}"),
             ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
             ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
             ("backend", "{}"))

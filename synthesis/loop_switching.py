@@ -1,0 +1,147 @@
+"""Switching among designs with the L1 filter state included (docs/design.md 5.6).
+
+The reference system of a design (condition 5.3b,
+:func:`synthesis.conditions.reference_system_matrix`) is the L1 loop with the ideal
+estimate: plant and low-pass filter, state ``z = [s, u_ad]`` (m, m/s, rad, rad/s; rad),
+``z' = R_i(C, V) z`` plus the known inputs (feedforward and road). At a design switch ``s``
+is continuous and the piecewise-constant law hands ``u_ad`` over
+(``systems/switching_controller.py``), so ``z`` is continuous, and one matrix ``P_z`` with
+
+    R_i(C, V)' P_z + P_z R_i(C, V) + 2 lambda_z P_z <= 0
+
+for every design i of a family and every (C, V) of its range makes ``z' P_z z`` fall at rate
+``2 lambda_z`` whatever design is in force and however often it switches.
+
+Where it is checked. For a fixed speed ``R_i`` is affine in C (``theta``, the unmatched part
+and ``w`` are; the piecewise-constant law's ``r_c`` depends on V only), so the two ends of the
+design's certified interval cover every C between them exactly. In V it is not affine (``r_c``
+holds ``A_m(V)^-1``): speeds are checked on a grid of :data:`LOOP_SPEED_STEP_MPS` from
+``speed_min`` to the design's safe speed, as condition 5.3b is for this law; a measurement
+between grid speeds, not a certificate, and stated so. The gradient law's filter row is affine
+in ``(C, C/V, 1/V)`` and its corners would suffice, but for the shipped designs no common
+matrix exists for it (measured): its families get none.
+
+Solved with cvxpy + Clarabel at the first feasible rate of :data:`LOOP_DECAY_TRIALS` (any
+lambda_z > 0 proves the claim; the stored rate is the least the matrix proves on the grid);
+:func:`check_loop_certificate` rechecks
+a stored matrix with generalized eigenvalues on a grid offset by half a step (no solver).
+"""
+
+import numpy as np
+
+from drake_cert.config import VehicleParams
+from synthesis.conditions import GRADIENT, reference_system_matrix
+from synthesis.design import ControllerDesign
+
+LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
+LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
+COARSE_STRIDE = 4  # the first LMI uses every 4th grid speed (1 m/s)
+LOOP_ROUNDS = 4  # LMI solves with grid points added where the matrix falls short
+LOOP_TOLERANCE = 1.0e-6  # 1/s slack on the stored decay rate in the check
+
+
+def loop_speeds(design: ControllerDesign, speed_min_mps: float, offset: float = 0.0,
+                stride: int = 1) -> np.ndarray:
+    """``speed_min, speed_min + step, ...`` up to the design's safe speed (both ends
+    included); with ``offset`` (a fraction of the step) the grid is shifted inside the range
+    (the check's), with ``stride`` every stride-th speed is kept."""
+    top = max(design.speed_mps, speed_min_mps)
+    count = int(np.floor((top - speed_min_mps) / LOOP_SPEED_STEP_MPS + 1e-9))
+    grid = speed_min_mps + LOOP_SPEED_STEP_MPS * (np.arange(0, count + 1, stride) + offset)
+    grid = grid[grid <= top + 1e-12]
+    return np.unique(np.concatenate([[speed_min_mps], grid, [top]]))
+
+
+def loop_matrices(vehicle: VehicleParams, design: ControllerDesign, speed_min_mps: float,
+                  law: str, offset: float = 0.0, stride: int = 1) -> list[np.ndarray]:
+    """``R_i(C, V)`` (5 x 5, 1/s) at both ends of the certified interval and every speed of
+    :func:`loop_speeds`."""
+    return [reference_system_matrix(vehicle, design.k_m, design.nominal_stiffness_n_per_rad,
+                                    c, v, design.filter_gain, law)
+            for c in design.certified_interval
+            for v in loop_speeds(design, speed_min_mps, offset, stride)]
+
+
+def proved_decay(p: np.ndarray, m: np.ndarray) -> float:
+    """Largest lambda with ``M' P + P M + 2 lambda P <= 0`` (generalized eigenvalues)."""
+    import scipy.linalg
+
+    lyap = m.T @ p + p @ m
+    return -0.5 * float(scipy.linalg.eigh(0.5 * (lyap + lyap.T), p, eigvals_only=True).max())
+
+
+def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign],
+                         speed_min_mps: float, law: str, lmi_margin: float
+                         ) -> tuple[np.ndarray, float] | None:
+    """``(P_z, lambda_z)`` for the designs with a safe speed (module docstring), P_z normalised
+    to smallest eigenvalue 1 and lambda_z the least rate it proves on the grid of
+    :data:`LOOP_SPEED_STEP_MPS` (rounded down to 6 digits); None when none is found, or for
+    the gradient law.
+
+    The LMI is posed on every :data:`COARSE_STRIDE`-th grid speed (and the ends); the
+    matrix is then evaluated on the whole grid, and grid points where it proves less than
+    half the trial rate are added and the LMI solved again (at most :data:`LOOP_ROUNDS`
+    times): a few hundred LMIs instead of a thousand, the same claim."""
+    import cvxpy as cp
+
+    from synthesis.gains import solve_sdp
+
+    covered = [d for d in designs if d.has_safe_speed]
+    if not covered or law == GRADIENT:
+        return None
+    grid = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law)]
+    chosen = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law,
+                                                        stride=COARSE_STRIDE)]
+    for _ in range(LOOP_ROUNDS):
+        eye = np.eye(5)
+        p = cp.Variable((5, 5), symmetric=True)
+        decay = cp.Parameter(nonneg=True)
+        constraints = [p >> eye]
+        for m in chosen:
+            lyap = m.T @ p + p @ m + 2.0 * decay * p
+            constraints.append(0.5 * (lyap + lyap.T) << -lmi_margin * eye)
+        problem = cp.Problem(cp.Minimize(0), constraints)
+        found = None
+        for rate in LOOP_DECAY_TRIALS:
+            decay.value = rate
+            if solve_sdp(problem) and p.value is not None:
+                found = (0.5 * (p.value + p.value.T), rate)
+                break
+        if found is None:
+            return None
+        best, trial = found
+        rates = np.array([proved_decay(best, m) for m in grid])
+        if rates.min() > 0.5 * trial or (trial == 0.0 and rates.min() > 0.0):
+            best = best / float(np.linalg.eigvalsh(best).min())
+            rate = min(proved_decay(best, m) for m in grid)
+            return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
+        chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
+    return None
+
+
+def check_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
+                           speed_min_mps: float, law: str, p_rows, decay_rate_per_s: float,
+                           name: str) -> list[str]:
+    """Failures of a stored loop certificate for ``designs`` (readable strings; [] if it
+    holds): P_z symmetric positive definite, and the stored rate reached within
+    :data:`LOOP_TOLERANCE` at both interval ends and every speed of the grid shifted by half a
+    step (different speeds from the synthesis's) and its ends."""
+    p = np.asarray(p_rows, dtype=float)
+    if p.shape != (5, 5) or not np.all(np.isfinite(p)):
+        return [f"{name}: loop_lyapunov_matrix must be a finite 5 x 5 matrix"]
+    if np.abs(p - p.T).max() > 1e-9 * max(np.abs(p).max(), 1.0):
+        return [f"{name}: loop_lyapunov_matrix is not symmetric"]
+    if np.linalg.eigvalsh(p).min() <= 0.0:
+        return [f"{name}: loop_lyapunov_matrix is not positive definite"]
+    for d in designs:
+        if not d.has_safe_speed:
+            continue
+        for m, (c, v) in zip(loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5),
+                             [(c, v) for c in d.certified_interval
+                              for v in loop_speeds(d, speed_min_mps, 0.5)], strict=True):
+            rate = proved_decay(p, m)
+            if rate < decay_rate_per_s - LOOP_TOLERANCE:
+                return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
+                        f"{decay_rate_per_s}/s for design {'+'.join(d.labels) or d.interval} "
+                        f"at C = {c:.6g} N/rad, V = {v:.4g} m/s"]
+    return []
