@@ -89,9 +89,14 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
     covered = [d for d in designs if d.has_safe_speed]
     if not covered or law == GRADIENT:
         return None
-    grid = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law)]
-    chosen = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law,
-                                                        stride=COARSE_STRIDE)]
+    try:
+        grid = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law)]
+        chosen = [m for d in covered for m in loop_matrices(vehicle, d, speed_min_mps, law,
+                                                            stride=COARSE_STRIDE)]
+    except np.linalg.LinAlgError:  # a design whose nominal loop A_m is singular: none
+        return None
+    if not all(np.all(np.isfinite(m)) for m in grid):
+        return None
     for _ in range(LOOP_ROUNDS):
         eye = np.eye(5)
         p = cp.Variable((5, 5), symmetric=True)
@@ -136,9 +141,16 @@ def check_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesig
     for d in designs:
         if not d.has_safe_speed:
             continue
-        for m, (c, v) in zip(loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5),
-                             [(c, v) for c in d.certified_interval
-                              for v in loop_speeds(d, speed_min_mps, 0.5)], strict=True):
+        try:
+            mats = loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5)
+        except np.linalg.LinAlgError:  # e.g. a gain that leaves the nominal loop A_m singular
+            return [f"{name}: design {'+'.join(d.labels) or d.interval} has no reference loop "
+                    "to check the loop matrix on (its nominal loop A_m is singular)"]
+        for m, (c, v) in zip(mats, [(c, v) for c in d.certified_interval
+                                    for v in loop_speeds(d, speed_min_mps, 0.5)], strict=True):
+            if not np.all(np.isfinite(m)):
+                return [f"{name}: design {'+'.join(d.labels) or d.interval}'s reference loop "
+                        f"is not finite at C = {c:.6g} N/rad, V = {v:.4g} m/s"]
             rate = proved_decay(p, m)
             if rate < decay_rate_per_s - LOOP_TOLERANCE:
                 return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
