@@ -25,7 +25,7 @@ from pydrake.systems.primitives import (
 from pydrake.trajectories import PiecewisePolynomial
 
 from synthesis.conditions import reference_system_matrix
-from synthesis.switching import switching_families
+from synthesis.switching import common_lyapunov_certificate, switching_families
 from systems.closed_loop import simulator_config
 from systems.plants import LinearLateralPlant
 from systems.switching_controller import SwitchingL1Controller
@@ -37,11 +37,12 @@ S0 = np.array([0.5, 0.0, 0.0, 0.0])  # m, m/s, rad, rad/s
 
 @pytest.fixture(scope="module")
 def family(default_design_table):
-    from synthesis.design_io import with_switching_certificates
-
-    table = with_switching_certificates(default_design_table)
+    """The table, robotcar-like's designs with a safe speed and their switching certificate
+    (as synthesize writes it for that preset)."""
+    table = default_design_table
     designs = dict(switching_families(table.designs, table.conditions))["robotcar-like"]
-    certificate = {c.family: c for c in table.switching}["robotcar-like"]
+    certificate = common_lyapunov_certificate(table.vehicle, designs, table.settings,
+                                              "robotcar-like")
     return table, [d for d in designs if d.has_safe_speed], certificate
 
 
