@@ -30,7 +30,12 @@ import numpy as np
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
-from synthesis.gains import corner_points, solve_sdp
+from synthesis.gains import (
+    GRID_CHECK_TOLERANCE,
+    closed_loop_spectral_abscissa,
+    corner_points,
+    solve_sdp,
+)
 
 JOINT = "joint"  # one LMI, common Lyapunov matrix (the default)
 SEPARATE = "separate"  # one LMI per interval, each with its own Lyapunov matrix
@@ -66,7 +71,8 @@ def common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
                           settings: Settings) -> list[np.ndarray] | None:
     """One ``k_i`` (4,) per box, all certified by one ``X = P^-1`` (module docstring) at
     ``settings.synthesis.decay_rate``; None when Clarabel reports no optimal solution (the
-    joint program is infeasible, or numerically unreliable)."""
+    joint program is infeasible, or numerically unreliable) or a gain fails the eigenvalue
+    grid check of 5.1 on its box."""
     syn = settings.synthesis
     eye = np.eye(4)
     x = cp.Variable((4, 4), symmetric=True)
@@ -85,4 +91,10 @@ def common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
     problem = cp.Problem(cp.Minimize(sum(t[0, 0] for t in ts)), constraints)
     if not solve_sdp(problem) or x.value is None:
         return None
-    return [np.linalg.solve(x.value, y.value.reshape(4)) for y in ys]
+    gains = [np.linalg.solve(x.value, y.value.reshape(4)) for y in ys]
+    for box, k_m in zip(boxes, gains, strict=True):  # the grid check of 5.1, outside the solver
+        abscissa = closed_loop_spectral_abscissa(vehicle, k_m, box.interval, box.speed_lo_mps,
+                                                 box.speed_hi_mps)
+        if abscissa > -syn.decay_rate + GRID_CHECK_TOLERANCE:
+            return None
+    return gains

@@ -22,9 +22,9 @@ in ``(C, C/V, 1/V)`` and its corners would suffice, but for the shipped designs 
 matrix exists for it (measured): its families get none.
 
 Solved with cvxpy + Clarabel at the first feasible rate of :data:`LOOP_DECAY_TRIALS` (any
-lambda_z > 0 proves the claim; the stored rate is the least the matrix proves on the grid);
-:func:`check_loop_certificate` rechecks
-a stored matrix with generalized eigenvalues on a grid offset by half a step (no solver).
+lambda_z > 0 proves the claim; the stored rate is the least the matrix proves on the grid and
+on the grid shifted by half a step); :func:`check_loop_certificate` recomputes it on the
+shifted grid with generalized eigenvalues (no solver).
 """
 
 import numpy as np
@@ -75,8 +75,8 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
                          ) -> tuple[np.ndarray, float] | None:
     """``(P_z, lambda_z)`` for the designs with a safe speed (module docstring), P_z normalised
     to smallest eigenvalue 1 and lambda_z the least rate it proves on the grid of
-    :data:`LOOP_SPEED_STEP_MPS` (rounded down to 6 digits); None when none is found, or for
-    the gradient law.
+    :data:`LOOP_SPEED_STEP_MPS` and on that grid shifted by half a step (rounded down to 6
+    digits); None when none is found, or for the gradient law.
 
     The LMI is posed on every :data:`COARSE_STRIDE`-th grid speed (and the ends); the
     matrix is then evaluated on the whole grid, and grid points where it proves less than
@@ -118,7 +118,11 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
         rates = np.array([proved_decay(best, m) for m in grid])
         if rates.min() > 0.5 * trial or (trial == 0.0 and rates.min() > 0.0):
             best = best / float(np.linalg.eigvalsh(best).min())
-            rate = min(proved_decay(best, m) for m in grid)
+            shifted = [m for d in covered
+                       for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5)]
+            rate = min(proved_decay(best, m) for m in grid + shifted)
+            if rate <= 0.0:
+                return None
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
         chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
     return None

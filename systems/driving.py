@@ -612,14 +612,34 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     systems_ = dict(motion=motion, route=road, camera=camera, attacker=attacker,
                     perception=perception, interval=interval, controller=controller,
                     saturation=saturation, plant=plant)
-    from synthesis.switching import common_lyapunov_certificate
-
-    switching = common_lyapunov_certificate(vehicle, table, settings, family=p.preset)
+    switching = preset_switching_certificate(vehicle, table, settings, p.preset)
     return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
                           v0, vehicle, seed_source, switching=switching,
                           lead_in_m=float(cam.look_ahead_m),
                           guarantee={**guarantee_summary(scenario, table, conformal),
                                      "warnings": _calibration_warnings(scenario, beta)})
+
+
+_CERTIFICATES: dict[str, object] = {}  # memo of preset_switching_certificate, by value
+_CERTIFICATES_KEPT = 16
+
+
+def preset_switching_certificate(vehicle: VehicleParams, table: list[ControllerDesign],
+                                 settings: Settings, preset: str):
+    """The switching certificate of a preset's designs
+    (:func:`synthesis.switching.common_lyapunov_certificate`, DESIGN 5.6), memoised on the
+    values of its inputs: drives that share vehicle, designs and settings (every drive of a
+    sweep or a test session) solve its LMIs once."""
+    from synthesis.switching import common_lyapunov_certificate
+
+    key = repr((dataclasses.asdict(vehicle), [dataclasses.asdict(d) for d in table],
+                dataclasses.asdict(settings), preset))
+    if key not in _CERTIFICATES:
+        if len(_CERTIFICATES) >= _CERTIFICATES_KEPT:
+            _CERTIFICATES.clear()
+        _CERTIFICATES[key] = common_lyapunov_certificate(vehicle, table, settings,
+                                                         family=preset)
+    return _CERTIFICATES[key]
 
 
 @dataclasses.dataclass

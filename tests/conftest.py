@@ -22,6 +22,15 @@ def default_design_table():
                        conditions)
 
 
+@pytest.fixture(scope="session")
+def certified_design_table(default_design_table):
+    """:func:`default_design_table` with its switching certificates (what
+    ``drake-cert synthesize --out`` writes); computed once per session (several seconds)."""
+    from synthesis.design_io import with_switching_certificates
+
+    return with_switching_certificates(default_design_table)
+
+
 @pytest.fixture(scope="session", autouse=True)
 def one_torch_thread():
     """Tiny torch models run on one thread: no oversubscription on a shared 2-core machine."""

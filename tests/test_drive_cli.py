@@ -17,9 +17,13 @@ KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min
 
 
 @pytest.fixture(scope="module")
-def designs(tmp_path_factory):
+def designs(tmp_path_factory, certified_design_table):
+    """The file `drake-cert synthesize --out` writes for the shipped inputs (the session's
+    table and certificates; the command itself is tested in test_verify.py)."""
+    from synthesis.design_io import save_design_table
+
     path = tmp_path_factory.mktemp("designs") / "designs.yaml"
-    assert main(["synthesize", "--out", str(path)]) == 0
+    save_design_table(path, certified_design_table)
     return str(path)
 
 

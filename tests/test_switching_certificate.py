@@ -42,11 +42,9 @@ ACCEL_MPS2 = 4.0  # |dV/dt| of the simulations
 
 
 @pytest.fixture(scope="module")
-def certified(default_design_table) -> DesignTable:
+def certified(certified_design_table) -> DesignTable:
     """The shipped table with its switching certificates (what synthesize --out writes)."""
-    from synthesis.design_io import with_switching_certificates
-
-    return with_switching_certificates(default_design_table)
+    return certified_design_table
 
 
 @pytest.fixture(scope="module")
@@ -136,7 +134,7 @@ def test_a_presets_designs_share_a_lyapunov_matrix_checked_at_every_corner(certi
 def test_one_lyapunov_matrix_serves_the_whole_table(certified):
     """The joint LMI shares X = P^-1 among all designs of the table, not only a preset's."""
     whole = switching.common_lyapunov_certificate(certified.vehicle, certified.designs,
-                                                  certified.settings)
+                                                  certified.settings.synthesis)  # no loop part
     assert whole.method == COMMON
     assert whole.decay_rate_per_s >= 0.99 * certified.settings.synthesis.decay_rate
 

@@ -20,9 +20,10 @@ from synthesis.verify import completeness_check, verify_design, verify_design_ta
 
 
 @pytest.fixture(scope="module")
-def table_file(default_design_table, tmp_path_factory):
+def table_file(certified_design_table, tmp_path_factory):
+    """The shipped table with its switching certificates, saved as synthesize --out saves it."""
     path = tmp_path_factory.mktemp("designs") / "designs.yaml"
-    save_design_table(path, default_design_table)
+    save_design_table(path, certified_design_table)
     return path
 
 
