@@ -418,3 +418,27 @@ def test_the_chatter_bound_is_the_worst_burst_beyond_one_switch_per_average_dwel
     brute = max((j - i + 1) - (times[j] - times[i]) / 2.5
                 for i in range(15) for j in range(i, 15))
     assert chatter_bound(times, 2.5) == pytest.approx(brute)
+
+
+def test_when_the_joint_lmi_is_infeasible_every_range_falls_back_to_its_own_lmi(
+        default_design_table):
+    """robotcar-like alone at a decay rate of 0.5/s: each range's own gain LMI is feasible, the
+    shared one is not; the joint synthesis then gives exactly the separate design (and the
+    certificate of such designs is the average-dwell one, tested above)."""
+    from synthesis.table import joint_design_gains, synthesize_label_range
+
+    t = default_design_table
+    conditions = dataclasses.replace(
+        t.conditions, presets=[p for p in t.conditions.presets if p.name == "robotcar-like"])
+    settings = dataclasses.replace(
+        t.settings, synthesis=dataclasses.replace(t.settings.synthesis, decay_rate=0.5))
+    assert joint_design_gains(t.vehicle, conditions, settings) is None
+    joint = synthesize_label_range(t.vehicle, conditions, ["snow"], settings)
+    separate = synthesize_label_range(t.vehicle, conditions, ["snow"], settings,
+                                      gains="separate")
+    assert dataclasses.asdict(joint) == dataclasses.asdict(separate)
+    assert joint.gain_speed_max_mps == 30.0  # the separate form's box, not the grip speed's
+    from drake_cert.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="gains = 'both' must be one of joint, separate"):
+        synthesize_label_range(t.vehicle, conditions, ["snow"], settings, gains="both")
