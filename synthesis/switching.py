@@ -41,9 +41,13 @@ of switches in any interval ``(t, T)`` is at most ``N_0 + (T - t) / tau_a`` with
 ``V(T) <= mu^N_0 e^(-(2 lambda_0 - ln(mu) / tau_a)(T - t)) V(t)``: exponential stability at the
 state rate ``lambda_0 - ln(mu) / (2 tau_a)``. C and V may vary in time inside each box here too.
 
-Neither method says anything about the full L1 loop (predictor, filter, adaptation) under
-switching: see ``systems/switching_controller.py`` for how the adaptive state is handed over
-at a switch; the L1-norm condition is checked per design at frozen speeds.
+Both methods are about the state-feedback loops. The L1 loops with their filter state get a
+matrix of their own (:mod:`synthesis.loop_switching`, stored in the same certificate); see
+``systems/switching_controller.py`` for how the adaptive state is handed over at a switch, and
+docs/design.md 5.6 for what the two cover and what they leave out (the piecewise-constant
+estimate's one-period lag; the L1-norm condition is checked per design at frozen speeds). With
+jointly synthesized gains (:mod:`synthesis.joint_gains`, the default) "common" is found by
+construction.
 
 The solve uses cvxpy + Clarabel (:func:`synthesis.gains.solve_sdp`); the claim stored is what
 the returned matrices prove, recomputed from them by generalized eigenvalues, and
