@@ -32,6 +32,7 @@ import numpy as np
 from drake_cert.config import VehicleParams
 from synthesis.conditions import GRADIENT, reference_system_matrix
 from synthesis.design import ControllerDesign
+from synthesis.lyapunov_rate import certified_rate
 
 LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
 LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
@@ -60,14 +61,6 @@ def loop_matrices(vehicle: VehicleParams, design: ControllerDesign, speed_min_mp
                                     c, v, design.filter_gain, law)
             for c in design.certified_interval
             for v in loop_speeds(design, speed_min_mps, offset, stride)]
-
-
-def proved_decay(p: np.ndarray, m: np.ndarray) -> float:
-    """Largest lambda with ``M' P + P M + 2 lambda P <= 0`` (generalized eigenvalues)."""
-    import scipy.linalg
-
-    lyap = m.T @ p + p @ m
-    return -0.5 * float(scipy.linalg.eigh(0.5 * (lyap + lyap.T), p, eigvals_only=True).max())
 
 
 def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign],
@@ -115,12 +108,12 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
         if found is None:
             return None
         best, trial = found
-        rates = np.array([proved_decay(best, m) for m in grid])
+        rates = np.array([certified_rate(best, m) for m in grid])
         if rates.min() > 0.5 * trial or (trial == 0.0 and rates.min() > 0.0):
             best = best / float(np.linalg.eigvalsh(best).min())
             shifted = [m for d in covered
                        for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5)]
-            rate = min(proved_decay(best, m) for m in grid + shifted)
+            rate = min(certified_rate(best, m) for m in grid + shifted)
             if rate <= 0.0:
                 return None
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
@@ -155,7 +148,7 @@ def check_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesig
             if not np.all(np.isfinite(m)):
                 return [f"{name}: design {'+'.join(d.labels) or d.interval}'s reference loop "
                         f"is not finite at C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-            rate = proved_decay(p, m)
+            rate = certified_rate(p, m)
             if rate < decay_rate_per_s - LOOP_TOLERANCE:
                 return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
                         f"{decay_rate_per_s}/s for design {'+'.join(d.labels) or d.interval} "

@@ -66,6 +66,7 @@ from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, Vehi
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import InfeasibleDesign
 from synthesis.design import ControllerDesign
+from synthesis.lyapunov_rate import certified_rate
 
 COMMON = "common"
 DWELL = "dwell"
@@ -156,14 +157,6 @@ def corner_matrices(vehicle: VehicleParams, design: ControllerDesign,
         a, b, _ = lateral_error_dynamics(vehicle, c, v)
         out.append(a - np.outer(b, design.k_m_array))
     return out
-
-
-def certified_rate(p: np.ndarray, m: np.ndarray) -> float:
-    """Largest lambda (1/s) with ``M' P + P M + 2 lambda P <= 0``: ``-lambda_max(P^-1 sym) / 2``
-    by the symmetric-definite generalized eigenproblem (P must be positive definite)."""
-    lyap = m.T @ p + p @ m
-    lyap = 0.5 * (lyap + lyap.T)
-    return -0.5 * float(scipy.linalg.eigh(lyap, p, eigvals_only=True).max())
 
 
 def jump_factor(p_from: np.ndarray, p_to: np.ndarray) -> float:

@@ -244,7 +244,8 @@ def test_every_presets_l1_reference_loops_share_a_matrix_with_the_filter_state(c
     """z = [s, u_ad]: one P_z with R_i' P_z + P_z R_i + 2 lambda_z P_z <= 0 at both ends of
     every design's interval and every speed of a grid between the synthesis's grid speeds (the
     piecewise-constant law, the one that runs)."""
-    from synthesis.loop_switching import check_loop_certificate, loop_matrices, proved_decay
+    from synthesis.loop_switching import check_loop_certificate, loop_matrices
+    from synthesis.switching import certified_rate
 
     for c in certified.switching:
         assert c.loop_law == "piecewise_constant" and c.loop_decay_rate_per_s > 0.05
@@ -255,7 +256,7 @@ def test_every_presets_l1_reference_loops_share_a_matrix_with_the_filter_state(c
         for d in designs[:2]:  # a quarter step off both grids
             for m in loop_matrices(certified.vehicle, d, _speed_min(certified), c.loop_law,
                                    offset=0.25):
-                assert proved_decay(p, m) >= c.loop_decay_rate_per_s - 1e-6
+                assert certified_rate(p, m) >= c.loop_decay_rate_per_s - 1e-6
 
 
 def test_verify_rejects_a_tampered_loop_matrix_and_an_inflated_loop_rate(rtk_file, tmp_path,

@@ -34,7 +34,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
                         help="joint (default): every design's gain from one LMI with a common "
                              "Lyapunov matrix, so switching among them is stable at any rate; "
                              "separate: one LMI per range (then switching rests on an average "
-                             "dwell time the car enforces)")
+                             "dwell time, which the car does not enforce; drives report "
+                             "whether it was met)")
 
 
 def design_record(design) -> dict:
@@ -82,7 +83,7 @@ def format_switching(certificates) -> str:
             lines.append(f"switching ({c.family}): no design with a safe speed")
             continue
         what = ("common Lyapunov matrix, any switching rate" if c.method == "common" else
-                f"average dwell {c.dwell_time_s:.3g} s (the car enforces it)")
+                f"average dwell {c.dwell_time_s:.3g} s (not enforced by the car)")
         lines.append(f"switching ({c.family}): {c.method}: {what}; decay "
                      f"{c.decay_rate_per_s:.3g}/s over {len(c.designs_covered)} designs")
     return "\n".join(lines)
