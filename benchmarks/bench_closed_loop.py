@@ -6,7 +6,8 @@ at the interval's lower end, friction of the label, a 20 s episode on a curve of
 radius (``Road.episode_curve``), T_s from the shipped settings. For each adaptation law and
 plant it prints simulated seconds per wall second of ``Simulator.AdvanceTo`` (diagram build
 time listed apart) and the peak |e1|. Baselines measured in the same run, on the same
-equations evaluated in Python (the float path of ``systems.l1_law`` / ``systems.plants``):
+equations evaluated in Python (the float path of ``drake_cert.systems.l1_law`` /
+``drake_cert.systems.plants``):
 
 * gradient law: ``scipy.integrate.solve_ivp`` with a stiff method (LSODA and BDF) on the
   continuous plant + controller equations, over the first ``BASELINE_S`` seconds of the same
@@ -25,24 +26,24 @@ import sys
 import time
 
 import numpy as np
-from scipy.integrate import solve_ivp
-
-from drake_cert.config import load_conditions, load_settings, load_vehicle
-from systems import l1_law
-from systems.closed_loop import build_closed_loop, simulate
-from systems.plants import (
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import build_closed_loop, simulate
+from drake_cert.systems.plants import (
     body_state_from_error,
     error_state_from_body,
     exact_discretisation,
     linear_error_derivatives,
     single_track_derivatives,
 )
-from systems.road import Road
+from drake_cert.systems.road import Road
+from scipy.integrate import solve_ivp
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
 
 BASELINE_S = 4.0  # window of the solve_ivp baselines (s)
 
 def default_case():
-    from synthesis.table import synthesize_design
+    from drake_cert.synthesis.table import synthesize_design
 
     vehicle, settings, conditions = load_vehicle(), load_settings(), load_conditions()
     labels = ["heavy_rain"]

@@ -15,16 +15,16 @@ import sys
 import time
 
 import numpy as np
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
-from systems.closed_loop import simulate
-from systems.road import Road
 
 PERIODS = (2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4, 6.25e-5)
 
 
 def main() -> None:
-    from synthesis.table import synthesize_design
+    from drake_cert.synthesis.table import synthesize_design
 
     plant = sys.argv[sys.argv.index("--plant") + 1] if "--plant" in sys.argv else "linear_sampled"
     periods = PERIODS if plant == "linear_sampled" else PERIODS[1:-1]

@@ -8,7 +8,7 @@ baselines from the same run.
       condition (target <= 1 ms each), the shared-pole batch over w that the speed search
       uses, and two baselines computed in this run on the same
       system: a naive ``scipy.integrate.quad`` of |c_i' expm(A t) b| per output, and the
-      graded-grid trapezoid quadrature of ``synthesis.verify`` (the independent checker).
+      graded-grid trapezoid quadrature of ``drake_cert.synthesis.verify`` (the independent checker).
 
 Run: ``.venv/bin/python benchmarks/bench_synthesis.py``.
 """
@@ -19,14 +19,14 @@ import time
 import numpy as np
 import scipy.integrate
 import scipy.linalg
+from drake_cert.synthesis import l1_norm
+from drake_cert.synthesis.conditions import filtered_plant_realisation, high_passed_plant_l1_norms
+from drake_cert.synthesis.switching import design_key, table_switching_certificates
+from drake_cert.synthesis.table import synthesize_table
+from drake_cert.synthesis.uncertainty import nominal_model
+from drake_cert.synthesis.verify import l1_norm_by_quadrature
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
-from synthesis import l1_norm
-from synthesis.conditions import filtered_plant_realisation, high_passed_plant_l1_norms
-from synthesis.switching import design_key, table_switching_certificates
-from synthesis.table import synthesize_table
-from synthesis.uncertainty import nominal_model
-from synthesis.verify import l1_norm_by_quadrature
 
 
 def naive_quad_l1_norm(a, b, c) -> float:

@@ -3,7 +3,8 @@
 For every single-label design of the shipped table: the highest speed at which the car stays
 in its lane on the default curve (radius ``design_radius_m``, clothoid entry) with the true
 stiffness at the label's C_lo and the label's friction, found by bisection on the nonlinear
-(Fiala) plant with the law that runs (``systems.closed_loop.simulate``, plant="nonlinear");
+(Fiala) plant with the law that runs (``drake_cert.systems.closed_loop.simulate``,
+plant="nonlinear");
 then lane departures at the certified speed for C_lo, the midpoint and C_hi on four roads:
 the default curve, an S-curve (left arc, 40 m transition, right arc), a curvature step from
 straight to the design radius, and a 40 m curve (with the design synthesized for a 40 m
@@ -17,12 +18,12 @@ import sys
 import time
 
 import numpy as np
+from drake_cert.synthesis.table import synthesize_design
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 from drake_cert import metrics
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
-from synthesis.table import synthesize_design
-from systems.closed_loop import simulate
-from systems.road import Road
 
 BISECTIONS = 8
 STRAIGHT_M = 40.0

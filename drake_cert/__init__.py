@@ -6,10 +6,11 @@ the table); re-check a saved table independently (:func:`verify_design_table`, a
 :class:`VerificationReport`); simulate the closed loop; read the tape with
 :mod:`drake_cert.metrics`; load a scenario and drive it through the certified Diagram.
 
-Packages: ``drake_cert`` (foundation: config, errors, io, dynamics, metrics; subpackages
-``perception``, ``certification``, ``experiments``, ``cli``), ``synthesis`` (convex gain
-synthesis, L1 norm, safe-speed search, verification), ``systems`` (Drake LeafSystems and
-diagrams). Names below are resolved on first use (PEP 562), so ``import drake_cert`` imports
+Packages, all under ``drake_cert``: the foundation (config, errors, io, dynamics, metrics),
+``perception``, ``certification``, ``experiments``, ``cli``, and ``drake_cert.synthesis``
+(convex gain synthesis, L1 norm, safe-speed search, verification) and ``drake_cert.systems``
+(Drake LeafSystems and diagrams), whose sources sit in the repository's top-level folders
+synthesis/ and systems/. Names below are resolved on first use (PEP 562), so ``import drake_cert`` imports
 neither torch nor pydrake, and the foundation never imports the packages built on it.
 """
 
@@ -30,24 +31,24 @@ _PUBLIC = {
     "CertificationError": "drake_cert.errors",
     "metrics": "drake_cert.metrics",
     # synthesis
-    "synthesize_design": "synthesis.table",
-    "synthesize_label_range": "synthesis.table",
-    "synthesize_table": "synthesis.table",
-    "ControllerDesign": "synthesis.design",
-    "load_design_file": "synthesis.design_io",
-    "save_design_table": "synthesis.design_io",
-    "verify_design_table": "synthesis.verify",
-    "VerificationReport": "synthesis.verify",
-    "common_lyapunov_certificate": "synthesis.switching",
+    "synthesize_design": "drake_cert.synthesis.table",
+    "synthesize_label_range": "drake_cert.synthesis.table",
+    "synthesize_table": "drake_cert.synthesis.table",
+    "ControllerDesign": "drake_cert.synthesis.design",
+    "load_design_file": "drake_cert.synthesis.design_io",
+    "save_design_table": "drake_cert.synthesis.design_io",
+    "verify_design_table": "drake_cert.synthesis.verify",
+    "VerificationReport": "drake_cert.synthesis.verify",
+    "common_lyapunov_certificate": "drake_cert.synthesis.switching",
     # systems
-    "Road": "systems.road",
-    "simulate": "systems.closed_loop",
-    "Tape": "systems.closed_loop",
-    "load_scenario": "systems.scenario",
-    "build_certified_driving_diagram": "systems.driving",
-    "drive": "systems.driving",
-    "drive_scenario": "systems.driving",
-    "with_overrides": "systems.driving",
+    "Road": "drake_cert.systems.road",
+    "simulate": "drake_cert.systems.closed_loop",
+    "Tape": "drake_cert.systems.closed_loop",
+    "load_scenario": "drake_cert.systems.scenario",
+    "build_certified_driving_diagram": "drake_cert.systems.driving",
+    "drive": "drake_cert.systems.driving",
+    "drive_scenario": "drake_cert.systems.driving",
+    "with_overrides": "drake_cert.systems.driving",
 }
 
 __all__ = ["__version__", *_PUBLIC]

@@ -305,7 +305,7 @@ class ControllerSettings:
     bound_factor: float = 1.1  # parameter sets are this factor times the largest value
     # smallest road radius (m) the adaptation sets cover: the gradient law's bound on |sigma|
     # is taken at curvature 1 / this; default half the design radius, a margin of 2 on the
-    # largest curvature a design admits (systems.l1_law, "Projection bound")
+    # largest curvature a design admits (drake_cert.systems.l1_law, "Projection bound")
     min_radius_m: float = dataclasses.field(default=25.0, metadata={"optional": True})
     # road preview of the curvature feedforward (DESIGN 4): u_ff is taken at the mean
     # curvature over the travel window [t + ahead - window, t + ahead] (s); window 0: off

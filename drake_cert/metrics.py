@@ -1,6 +1,6 @@
 """Closed-loop metrics (DESIGN section 7): pure functions of a logged tape.
 
-A tape is :class:`systems.closed_loop.Tape` (times, states s = [e1, e1dot, e2, e2dot],
+A tape is :class:`drake_cert.systems.closed_loop.Tape` (times, states s = [e1, e1dot, e2, e2dot],
 steering, lane margin). Nothing here simulates.
 """
 

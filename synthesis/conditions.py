@@ -8,7 +8,7 @@ b. ``reference_stability``: the reference system (the loop with the true uncerta
    place of its estimate) ``[[A(C) - b(C) k_m, b(C)], [-k theta', -k w]]`` is Hurwitz for
    every C in the interval and every speed in ``[V_min, V]``; margin ``-max Re eig`` (1/s).
 c. ``steady_state_offset``: lane margin minus ``max_C |e1|`` at the equilibrium of the
-   adaptive loop on the design curvature (``synthesis.equilibrium``); metres (stored as
+   adaptive loop on the design curvature (``drake_cert.synthesis.equilibrium``); metres (stored as
    ``steady_state_lane_margin_m``: the lane margin left at that equilibrium).
 d. ``grip``: the tire as it is at the slip the design admits. The Fiala tire's secant
    stiffness over normalised slips ``z = C |tan a| / (3 mu F_z) <= z_b`` lies in
@@ -22,22 +22,27 @@ import functools
 
 import cvxpy as cp
 import numpy as np
+from drake_cert.synthesis.design import (
+    MARGIN_KEYS as MARGIN_KEYS,  # the stored margins, re-exported
+)
+from drake_cert.synthesis.equilibrium import (
+    adaptive_steady_states,
+    piecewise_constant_steady_states,
+)
+from drake_cert.synthesis.gains import solve_sdp
+from drake_cert.synthesis.l1_norm import integral_abs_exponential_sums, l1_norm
+from drake_cert.synthesis.uncertainty import (
+    NominalModel,
+    matched_uncertainty,
+    nominal_model,
+    output_equivalent_row,
+)
 
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
 from drake_cert.dynamics import (
     fiala_normalised_slip_at_utilisation,
     fiala_secant_ratio,
     lateral_error_dynamics,
-)
-from synthesis.design import MARGIN_KEYS as MARGIN_KEYS  # the stored margins, re-exported
-from synthesis.equilibrium import adaptive_steady_states, piecewise_constant_steady_states
-from synthesis.gains import solve_sdp
-from synthesis.l1_norm import integral_abs_exponential_sums, l1_norm
-from synthesis.uncertainty import (
-    NominalModel,
-    matched_uncertainty,
-    nominal_model,
-    output_equivalent_row,
 )
 
 L1_CONDITION = "l1_condition"
@@ -71,8 +76,8 @@ def high_passed_plant_l1_norms(nominal: NominalModel, w_values, filter_gain: flo
     filter pole ``-w k``. With ``H(s) = sum_l R_l / (s - lambda_l)`` the residues are
     ``R_l lambda_l / (lambda_l + w k)`` at ``lambda_l`` and ``w k (w k I + A_m)^-1 b_m`` at
     ``-w k``; all (w, output) rows go through one call of
-    :func:`synthesis.l1_norm.integral_abs_exponential_sums`. Falls back to
-    :func:`synthesis.l1_norm.l1_norm` on the order-5 realisation when a filter pole is
+    :func:`drake_cert.synthesis.l1_norm.integral_abs_exponential_sums`. Falls back to
+    :func:`drake_cert.synthesis.l1_norm.l1_norm` on the order-5 realisation when a filter pole is
     (nearly) one of A_m's or A_m is near-defective. Returns an array over ``w_values``.
     """
     w_values = np.asarray(w_values, dtype=float)

@@ -2,7 +2,7 @@
 
 One ``ControllerDesign`` per certified stiffness interval (a contiguous label range, or a
 regression interval). Saved as YAML with a schema version and provenance (see
-``synthesis.design_io``); the state-feedback gain is stored under the key ``k_m``.
+``drake_cert.synthesis.design_io``); the state-feedback gain is stored under the key ``k_m``.
 """
 
 import dataclasses
@@ -13,7 +13,7 @@ from drake_cert.dynamics import fiala_secant_ratio
 
 # The keys of ControllerDesign.margins (units in the name); each is > 0 where its condition
 # holds. Kept here, with the design that stores them, so that reading a design file needs no
-# solver import; ``synthesis.conditions`` re-exports them.
+# solver import; ``drake_cert.synthesis.conditions`` re-exports them.
 MARGIN_KEYS = {
     "gain_decay_per_s": "alpha-shifted stability of A - b k_m: -(max Re eig) - alpha",
     "l1_condition": "1 - ||G||_L1 L (dimensionless)",

@@ -9,14 +9,15 @@ A design table file (``drake-cert synthesize --out``)::
     conditions: {...}     # ConditionsTable used (optional)
     designs: [ {labels, stiffness_lo_n_per_rad, ..., k_m: [4 numbers], ..., margins: {...}} ]
     switching: [ {family, method, designs_covered, decay_rate_per_s, dwell_time_s, ...} ]
-                          # optional: synthesis.switching certificates, one per preset
+                          # optional: drake_cert.synthesis.switching certificates, one per preset
 
 The ``switching`` section is table-level and optional (files written before it load; verify
 then notes its absence). It is not part of any design, so the reproduction's run identity,
 which hashes the designs only, does not depend on it.
 
 A single-design file has ``design: {...}`` instead of ``designs``. Loading checks every key
-and value (a design's ``margins`` keys are :data:`synthesis.design.MARGIN_KEYS`) and raises
+and value (a design's ``margins`` keys are :data:`drake_cert.synthesis.design.MARGIN_KEYS`) and
+raises
 :class:`DesignFormatError` naming the file and the offending key. Files are written
 atomically.
 
@@ -31,6 +32,12 @@ import math
 from pathlib import Path
 
 import yaml
+from drake_cert.synthesis.design import MARGIN_KEYS, ControllerDesign
+from drake_cert.synthesis.switching import (
+    SwitchingCertificate,
+    certificate_from_dict,
+    certificate_to_dict,
+)
 
 from drake_cert.config import (
     ConditionsTable,
@@ -42,8 +49,6 @@ from drake_cert.config import (
 )
 from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
-from synthesis.design import MARGIN_KEYS, ControllerDesign
-from synthesis.switching import SwitchingCertificate, certificate_from_dict, certificate_to_dict
 
 DESIGN_SCHEMA_VERSION = 3  # 2: tire_slip_bound, certified_law; Fiala grip rule.
 # 3: margin steady_state_offset_m renamed steady_state_lane_margin_m
@@ -62,7 +67,7 @@ class DesignTable:
     settings: Settings
     provenance: dict
     conditions: ConditionsTable | None = None
-    # switching certificates (synthesis.switching), one per family; None: not computed
+    # switching certificates (drake_cert.synthesis.switching), one per family; None: not computed
     switching: tuple[SwitchingCertificate, ...] | None = None
 
 
@@ -108,9 +113,9 @@ def dump_design_table(table: DesignTable, single: bool = False) -> str:
 
 def with_switching_certificates(table: DesignTable) -> DesignTable:
     """The table with its ``switching`` section computed from its own vehicle, settings,
-    designs and conditions (:func:`synthesis.switching.table_switching_certificates`: one
+    designs and conditions (:func:`drake_cert.synthesis.switching.table_switching_certificates`: one
     certificate per preset, or one for all designs without conditions; a few seconds)."""
-    from synthesis.switching import table_switching_certificates
+    from drake_cert.synthesis.switching import table_switching_certificates
 
     certificates = table_switching_certificates(table.vehicle, table.designs, table.settings,
                                                 table.conditions)

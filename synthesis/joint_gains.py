@@ -19,23 +19,23 @@ bounds ``||k_i||^2 <= t_i`` and ``sum t_i`` is minimised, as 5.1 minimises one t
 Smaller slip bounds and lower speeds give sub-boxes of ``B_i`` (the image of a sub-box in the
 ``(C, C/V)`` plane lies in the image of the box), so ``k_i`` serves every slip bound the speed
 search tries. Solved with cvxpy + Clarabel; the caller checks the result again on grids (5.5)
-and :mod:`synthesis.switching` recomputes the common certificate from the final gains.
+and :mod:`drake_cert.synthesis.switching` recomputes the common certificate from the final gains.
 """
 
 import dataclasses
 
 import cvxpy as cp
 import numpy as np
-
-from drake_cert.config import Settings, VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics
-from synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
-from synthesis.gains import (
+from drake_cert.synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
+from drake_cert.synthesis.gains import (
     GRID_CHECK_TOLERANCE,
     closed_loop_spectral_abscissa,
     corner_points,
     solve_sdp,
 )
+
+from drake_cert.config import Settings, VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics
 
 JOINT = "joint"  # one LMI, common Lyapunov matrix (the default)
 SEPARATE = "separate"  # one LMI per interval, each with its own Lyapunov matrix

@@ -1,7 +1,7 @@
 """Switching among designs with the L1 filter state included (docs/design.md 5.6).
 
 The reference system of a design (condition 5.3b,
-:func:`synthesis.conditions.reference_system_matrix`) is the L1 loop with the ideal
+:func:`drake_cert.synthesis.conditions.reference_system_matrix`) is the L1 loop with the ideal
 estimate: plant and low-pass filter, state ``z = [s, u_ad]`` (m, m/s, rad, rad/s; rad),
 ``z' = R_i(C, V) z`` plus the known inputs (feedforward and road). At a design switch ``s``
 is continuous and the piecewise-constant law hands ``u_ad`` over
@@ -28,11 +28,11 @@ shifted grid with generalized eigenvalues (no solver).
 """
 
 import numpy as np
+from drake_cert.synthesis.conditions import GRADIENT, reference_system_matrix
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 from drake_cert.config import VehicleParams
-from synthesis.conditions import GRADIENT, reference_system_matrix
-from synthesis.design import ControllerDesign
-from synthesis.lyapunov_rate import certified_rate
 
 LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
 LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
@@ -76,8 +76,7 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
     half the trial rate are added and the LMI solved again (at most :data:`LOOP_ROUNDS`
     times): a few hundred LMIs instead of a thousand, the same claim."""
     import cvxpy as cp
-
-    from synthesis.gains import solve_sdp
+    from drake_cert.synthesis.gains import solve_sdp
 
     covered = [d for d in designs if d.has_safe_speed]
     if not covered or law == GRADIENT:

@@ -1,8 +1,9 @@
 """The decay rate a quadratic Lyapunov matrix proves for a linear system (docs/design.md 5.6).
 
-Shared by the switching certificates of the state-feedback loops (``synthesis.switching``,
-4 x 4) and of the L1 loops with their filter state (``synthesis.loop_switching``, 5 x 5); no
-solver, so loading and checking a certificate needs none.
+Shared by the switching certificates of the state-feedback loops
+(``drake_cert.synthesis.switching``, 4 x 4) and of the L1 loops with their filter state
+(``drake_cert.synthesis.loop_switching``, 5 x 5); no solver, so loading and checking a certificate
+needs none.
 """
 
 import numpy as np

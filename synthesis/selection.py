@@ -4,14 +4,15 @@ One code path for the Drake diagram's certified-interval block and for the exper
 a classification interval is a contiguous label range and gets that range's design; the
 family envelope's design is the fallback, never a nominal one. (A regression interval gets the
 narrowest design holding it whose friction bound is sound for it: the certified-interval
-block's ``_narrowest_holding`` in ``systems.certified_interval``.)
+block's ``_narrowest_holding`` in ``drake_cert.systems.certified_interval``.)
 """
 
 from collections.abc import Sequence
 
+from drake_cert.synthesis.design import ControllerDesign
+
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
 
 
 def preset_designs(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
@@ -48,7 +49,7 @@ def envelope_design_index(designs: Sequence[ControllerDesign], conditions: Condi
 def design_label_spans(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
                        preset: str) -> list[tuple[int, int]]:
     """(first, last) place of each design's label range in the preset's friction order (the
-    spans the combined decisions work on, ``systems.decision_combination``)."""
+    spans the combined decisions work on, ``drake_cert.systems.decision_combination``)."""
     return _label_spans(designs, list(conditions.preset(preset).labels))
 
 

@@ -1,7 +1,7 @@
 """Safe-speed and filter-gain search (DESIGN 5.3; paper eq. (prog)).
 
 The design speed is the largest V in ``[V_min, V_hi]`` (V_hi: where ``k_m`` is certified) at
-which all four conditions of :mod:`synthesis.conditions` hold for some filter gain
+which all four conditions of :mod:`drake_cert.synthesis.conditions` hold for some filter gain
 ``k <= k_bar``; condition b must hold for every speed in ``[V_min, V]``.
 
 Search: the conditions are evaluated at ``k = k_bar`` on the speed grid (step
@@ -21,10 +21,10 @@ import dataclasses
 import functools
 
 import numpy as np
+from drake_cert.synthesis import conditions as cond
+from drake_cert.synthesis.gains import closed_loop_spectral_abscissa
 
 from drake_cert.config import Settings, VehicleParams
-from synthesis import conditions as cond
-from synthesis.gains import closed_loop_spectral_abscissa
 
 L1_MARGIN_MIN = 1.0e-3  # require ||G|| L <= 1 - 1e-3 (numerical slack for verification)
 OFFSET_MARGIN_MIN_M = 1.0e-3
@@ -116,9 +116,9 @@ def certify_reference_stability(vehicle, k_m, interval, speed_lo, speed_hi, k,
                                 lmi_margin) -> bool:
     """Condition b for every (C, V) in ``interval x [speed_lo, speed_hi]``, certified.
 
-    The corner LMI (:func:`synthesis.conditions.reference_stability_lmi`) is tried on the whole
-    speed range, and on failure on its two halves, recursively down to 0.25 m/s segments: each
-    frozen (C, V) is then covered by some certified segment.
+    The corner LMI (:func:`drake_cert.synthesis.conditions.reference_stability_lmi`) is tried on
+    the whole speed range, and on failure on its two halves, recursively down to 0.25 m/s segments:
+    each frozen (C, V) is then covered by some certified segment.
     """
     @functools.cache
     def ok(lo, hi):

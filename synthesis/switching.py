@@ -1,11 +1,11 @@
 """Switching certificate: one Lyapunov argument for switching among controller designs.
 
 At run time the driving Diagram switches between designs of one preset (the contiguous label
-ranges of its labels, ``systems.certified_interval.designs_for_preset``): the state feedback
-``u = -k_i s`` of the design in force changes at a switch. Each design's ``k_i`` is certified
-alone by the corner LMI of :mod:`synthesis.gains` (its own Lyapunov matrix) on its box
-``B_i = [C_lo, C_hi] x [speed_min, gain_speed_max]``, with ``[C_lo, C_hi]`` the design's
-:attr:`~synthesis.design.ControllerDesign.certified_interval` (the label interval widened
+ranges of its labels, ``drake_cert.systems.certified_interval.designs_for_preset``): the state
+feedback ``u = -k_i s`` of the design in force changes at a switch. Each design's ``k_i`` is
+certified alone by the corner LMI of :mod:`drake_cert.synthesis.gains` (its own Lyapunov matrix) on
+its box ``B_i = [C_lo, C_hi] x [speed_min, gain_speed_max]``, with ``[C_lo, C_hi]`` the design's
+:attr:`~drake_cert.synthesis.design.ControllerDesign.certified_interval` (the label interval widened
 down to the Fiala secant stiffness at the design's slip bound: where the true stiffness lies
 while the design is in force, if perception is right). This module certifies the switched
 *reference (state-feedback) loops*
@@ -42,15 +42,15 @@ of switches in any interval ``(t, T)`` is at most ``N_0 + (T - t) / tau_a`` with
 state rate ``lambda_0 - ln(mu) / (2 tau_a)``. C and V may vary in time inside each box here too.
 
 Both methods are about the state-feedback loops. The L1 loops with their filter state get a
-matrix of their own (:mod:`synthesis.loop_switching`, stored in the same certificate); see
-``systems/switching_controller.py`` for how the adaptive state is handed over at a switch, and
+matrix of their own (:mod:`drake_cert.synthesis.loop_switching`, stored in the same certificate);
+see ``systems/switching_controller.py`` for how the adaptive state is handed over at a switch, and
 docs/design.md 5.6 for what the two cover and what they leave out (the piecewise-constant
 estimate's one-period lag; the L1-norm condition is checked per design at frozen speeds). With
-jointly synthesized gains (:mod:`synthesis.joint_gains`, the default) "common" is found by
-construction.
+jointly synthesized gains (:mod:`drake_cert.synthesis.joint_gains`, the default) "common" is found
+by construction.
 
-The solve uses cvxpy + Clarabel (:func:`synthesis.gains.solve_sdp`); the claim stored is what
-the returned matrices prove, recomputed from them by generalized eigenvalues, and
+The solve uses cvxpy + Clarabel (:func:`drake_cert.synthesis.gains.solve_sdp`); the claim stored is
+what the returned matrices prove, recomputed from them by generalized eigenvalues, and
 :func:`check_switching_certificate` rechecks it without any solver.
 """
 
@@ -61,12 +61,12 @@ import time
 
 import numpy as np
 import scipy.linalg
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import InfeasibleDesign
-from synthesis.design import ControllerDesign
-from synthesis.lyapunov_rate import certified_rate
 
 COMMON = "common"
 DWELL = "dwell"
@@ -80,8 +80,8 @@ JUMP_START = 1.0e4  # first mu tried (the joint problem is feasible there in pra
 JUMP_BISECTION_RATIO = 1.05  # mu bisection stops when hi / lo <= this
 JUMP_TOLERANCE = 1.0e-6  # relative slack on the stored mu in the check
 SWITCHING_TOLERANCE = 1.0e-6  # 1/s slack on the decay rate in the check (as the gain grid
-# check's synthesis.gains.GRID_CHECK_TOLERANCE; not imported: loading and checking a certificate
-# needs no cvxpy, only the solve does)
+# check's drake_cert.synthesis.gains.GRID_CHECK_TOLERANCE; not imported: loading and checking a
+# certificate needs no cvxpy, only the solve does)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -108,9 +108,9 @@ class SwitchingCertificate:
     None for "dwell"; ``modes``: the per-mode matrices (dwell only); ``jump_factor``: mu (1 for
     common); ``condition_number``: of P (common) or the largest of the P_m;
     ``loop_lyapunov_matrix``: P_z (5 x 5) common to the designs' L1 reference loops with the
-    filter state (:mod:`synthesis.loop_switching`), None when there is none (the gradient law,
-    or none found); ``loop_decay_rate_per_s``: the rate lambda_z it proves on its grid;
-    ``loop_law``: the adaptation law whose reference loops it covers;
+    filter state (:mod:`drake_cert.synthesis.loop_switching`), None when there is none (the
+    gradient law, or none found); ``loop_decay_rate_per_s``: the rate lambda_z it proves on its
+    grid; ``loop_law``: the adaptation law whose reference loops it covers;
     ``solve_time_s``: wall time of the solve (informative: not checked, not saved).
     """
 
@@ -201,7 +201,7 @@ class _CommonProblem:
 
     def solve(self, decay):
         """Normalised P (smallest eigenvalue 1) at this decay rate, or None."""
-        from synthesis.gains import solve_sdp
+        from drake_cert.synthesis.gains import solve_sdp
 
         self.decay.value = decay
         if not solve_sdp(self.problem) or self.p.value is None:
@@ -236,7 +236,7 @@ class _ModeProblem:
 
     def solve(self, decay, jump):
         """The matrices P_m (not normalised: their ratios matter), or None."""
-        from synthesis.gains import solve_sdp
+        from drake_cert.synthesis.gains import solve_sdp
 
         self.decay.value, self.jump.value = decay, jump
         if not solve_sdp(self.problem) or any(p.value is None for p in self.ps):
@@ -257,10 +257,10 @@ def with_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign
                           settings: Settings | SynthesisSettings,
                           certificate: SwitchingCertificate) -> SwitchingCertificate:
     """``certificate`` with the common Lyapunov matrix of the designs' L1 reference loops
-    (:func:`synthesis.loop_switching.loop_lyapunov_matrix`) for the adaptation law of
+    (:func:`drake_cert.synthesis.loop_switching.loop_lyapunov_matrix`) for the adaptation law of
     ``settings`` (a :class:`Settings`; with only its synthesis part, or without a design to
     switch among, the certificate is returned as it is)."""
-    from synthesis.loop_switching import loop_lyapunov_matrix
+    from drake_cert.synthesis.loop_switching import loop_lyapunov_matrix
 
     if not isinstance(settings, Settings) or certificate.method == NONE:
         return certificate
@@ -559,8 +559,8 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
 
 def _loop_failures(vehicle, covered, settings, certificate, name) -> list[str]:
     """The L1 reference loops' matrix, when stored: for the law of ``settings`` (when known)
-    and rechecked by :func:`synthesis.loop_switching.check_loop_certificate`."""
-    from synthesis.loop_switching import check_loop_certificate
+    and rechecked by :func:`drake_cert.synthesis.loop_switching.check_loop_certificate`."""
+    from drake_cert.synthesis.loop_switching import check_loop_certificate
 
     if certificate.loop_lyapunov_matrix is None:
         return []

@@ -11,14 +11,14 @@ import math
 from collections.abc import Callable, Iterable
 
 import numpy as np
+from drake_cert.synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.gains import synthesize_state_feedback
+from drake_cert.synthesis.joint_gains import GAIN_SYNTHESES, JOINT, common_lyapunov_gains, gain_box
+from drake_cert.synthesis.speed import IntervalEvaluator, search_speed
 
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError, InfeasibleDesign
-from synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
-from synthesis.design import ControllerDesign
-from synthesis.gains import synthesize_state_feedback
-from synthesis.joint_gains import GAIN_SYNTHESES, JOINT, common_lyapunov_gains, gain_box
-from synthesis.speed import IntervalEvaluator, search_speed
 
 GAIN_LMI = "gain_lmi"  # failed_condition when no k_m exists for the interval
 
@@ -28,7 +28,7 @@ def design_label_ranges(conditions: ConditionsTable) -> list[tuple[str, ...]]:
 
     A range is a run of consecutive labels in the preset's friction order, grippiest first,
     singles and the whole family included. These are the label ranges "the conditions define":
-    the run time selects among their designs, and ``synthesis.verify.completeness_check``
+    the run time selects among their designs, and ``drake_cert.synthesis.verify.completeness_check``
     requires a design for each one.
     """
     seen: dict[tuple[str, ...], None] = {}
@@ -67,7 +67,7 @@ class DesignCache:
 def joint_design_gains(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
                        cache: DesignCache | None = None) -> dict | None:
     """Every label range's ``(k_m, gain_speed_max_mps)`` from one LMI with a common Lyapunov
-    matrix (:mod:`synthesis.joint_gains`), on the vehicle's tires; None when that LMI is
+    matrix (:mod:`drake_cert.synthesis.joint_gains`), on the vehicle's tires; None when that LMI is
     infeasible. Ranges with the same gain box share one gain. Cached in ``cache``."""
     if cache is not None and JOINT in cache.joint:
         return cache.joint[JOINT]
@@ -159,9 +159,9 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
     """:func:`synthesize_design` at one normalised slip bound z_b.
 
     Every condition is evaluated on the certified interval ``[C_lo ratio(z_b), C_hi]``
-    (:func:`synthesis.conditions.tire_stiffness_lo`), whose midpoint is ``C_hat``. An interval
-    whose gain LMI is infeasible gives speed 0, ``failed_condition = 'gain_lmi'``, ``k_m = 0``.
-    ``gain``: a fixed ``(k_m, gain_speed_max_mps)`` instead of the interval's own LMI.
+    (:func:`drake_cert.synthesis.conditions.tire_stiffness_lo`), whose midpoint is ``C_hat``. An
+    interval whose gain LMI is infeasible gives speed 0, ``failed_condition = 'gain_lmi'``, ``k_m =
+    0``. ``gain``: a fixed ``(k_m, gain_speed_max_mps)`` instead of the interval's own LMI.
     """
     label_interval = (float(interval[0]), float(interval[1]))
     certified = (tire_stiffness_lo(label_interval[0], slip_bound), label_interval[1])

@@ -17,11 +17,11 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
   of its grip inverted through the Fiala force by bisection; the certified interval's lower
   end recomputed as the Fiala force over ``C tan a`` at the slip bound. Every condition is
   checked on that certified (tire-widened) interval.
-* ``switching`` (table level): the stored switching certificates (``synthesis.switching``)
-  rechecked by generalized eigenvalues of the stored Lyapunov matrices at every corner of
-  every covered design's box (no solver), and that they cover every design with a safe speed
-  of every preset. A table without certificates (written before they existed) passes with a
-  note in ``report.notes``, or fails with ``require_switching=True``.
+* ``switching`` (table level): the stored switching certificates
+  (``drake_cert.synthesis.switching``) rechecked by generalized eigenvalues of the stored Lyapunov
+  matrices at every corner of every covered design's box (no solver), and that they cover every
+  design with a safe speed of every preset. A table without certificates (written before they
+  existed) passes with a note in ``report.notes``, or fails with ``require_switching=True``.
 * consistency: ``speed <= gain_speed_max``, ``0 < k <= k_bar``, ``C_hat`` the midpoint, and
   (when the file holds the conditions) interval = hull and mu_lo = least friction of the labels;
   stored margins may not overstate the recomputed ones.
@@ -29,8 +29,8 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
   design for every label range the conditions define. A label range is a run of consecutive
   labels of one preset in its friction order (grippiest first), single labels and the whole
   family included (``ConditionsTable.contiguous_ranges``), the same label tuple counted once
-  across presets: the set ``synthesis.table.design_label_ranges`` synthesizes and the run time
-  selects from (a certified range, the join and the meet of two ranges are such runs). A
+  across presets: the set ``drake_cert.synthesis.table.design_label_ranges`` synthesizes and the
+  run time selects from (a certified range, the join and the meet of two ranges are such runs). A
   design covers a range when its ``labels`` equal it in that order. Checked against the
   reference conditions when given (by default then) or, on request, the embedded ones.
 
@@ -44,6 +44,9 @@ from pathlib import Path
 
 import numpy as np
 import scipy.linalg
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.design_io import DesignTable, load_design_file
+from drake_cert.synthesis.switching import check_table_switching
 
 from drake_cert.config import (
     GRAVITY_MPS2,
@@ -56,9 +59,6 @@ from drake_cert.config import (
 )
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from synthesis.design_io import DesignTable, load_design_file
-from synthesis.switching import check_table_switching
 
 CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
                    "steady_state_offset", "grip")
@@ -720,9 +720,9 @@ def completeness_check(designs: list[ControllerDesign], conditions: ConditionsTa
 
     The label ranges are every run of consecutive labels of each preset in its friction order
     (``ConditionsTable.contiguous_ranges``), one per label tuple across presets: what
-    ``synthesis.table.design_label_ranges`` synthesizes. A range without a design with exactly
-    those labels is missing (a :data:`COMPLETENESS` failure naming it and its presets); a range
-    with several designs is a failure too (which one the run time would use is not defined).
+    ``drake_cert.synthesis.table.design_label_ranges`` synthesizes. A range without a design with
+    exactly those labels is missing (a :data:`COMPLETENESS` failure naming it and its presets); a
+    range with several designs is a failure too (which one the run time would use is not defined).
     A design whose labels are no such range (unused at run time) is a note; a regression
     design (no labels) is not counted.
     """
@@ -786,8 +786,8 @@ def verify_design_table(table: DesignTable | str | Path, progress=None, *,
     design file) or :class:`drake_cert.errors.ConfigError` (a reference file), naming it.
 
     The table's switching certificates, when present, are rechecked
-    (:func:`synthesis.switching.check_table_switching`, failures named ``switching``). A table
-    with at most one design with a safe speed needs none; otherwise a missing section is a
+    (:func:`drake_cert.synthesis.switching.check_table_switching`, failures named ``switching``). A
+    table with at most one design with a safe speed needs none; otherwise a missing section is a
     note (``report.notes``), or a failure with ``require_switching``.
 
     Reference inputs (``vehicle``, ``settings``, ``conditions``), when given, must equal the

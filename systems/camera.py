@@ -15,6 +15,7 @@ import dataclasses
 import math
 
 import torch
+from drake_cert.systems.route import Route
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
@@ -29,7 +30,6 @@ from drake_cert.perception.frames import (
     style_for,
 )
 from drake_cert.rng import torch_generator
-from systems.route import Route
 
 
 @dataclasses.dataclass(frozen=True)

@@ -11,7 +11,7 @@ latest :class:`PerceptionResult` into a :class:`Decision`:
 - certified regression: ``[lower - beta, upper + beta]`` clipped to the envelope
   (:func:`runtime_interval`); its design is the narrowest design whose interval contains it
   and whose friction bound is at most the least friction a stiffness in it can mean
-  (:func:`synthesis.table.friction_lower_bound`); ties: the slower design.
+  (:func:`drake_cert.synthesis.table.friction_lower_bound`); ties: the slower design.
 - base mode (non-robust baseline): the raw label's own interval and design (regression: the
   narrowest design holding the raw point prediction, under the same friction rule).
 - Abstain, a bad frame, a failed certificate or nothing certified: the family envelope and its
@@ -31,6 +31,11 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.design_io import DesignTable
+from drake_cert.synthesis.selection import join_design_indices
+from drake_cert.synthesis.table import friction_lower_bound
+from drake_cert.systems.perception_smoothing import PerceptionResult
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
@@ -42,11 +47,6 @@ from drake_cert.certification.intervals import (
 )
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from synthesis.design_io import DesignTable
-from synthesis.selection import join_design_indices
-from synthesis.table import friction_lower_bound
-from systems.perception_smoothing import PerceptionResult
 
 STATUS_CODES = {"certified": 0, "envelope": 1, "stop": 2, "base": 3}
 

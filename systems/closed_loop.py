@@ -6,7 +6,7 @@
                                         state <------------------------------------------+
 With ``settings.controller.preview_window_s > 0`` a second TrajectorySource feeds the
 controller the road preview, the mean curvature ahead (``Road.preview_curvature_trajectory``;
-the curvature feedforward is taken at it, see :mod:`systems.l1_law`).
+the curvature feedforward is taken at it, see :mod:`drake_cert.systems.l1_law`).
 Loggers (``LogVectorOutput``, one sample per tape period) record the plant state, the
 saturated steering and the curvature. ``simulate`` builds the diagram, sets the initial
 state, advances and returns a :class:`Tape` (Drake tutorial style). A simulator monitor
@@ -16,6 +16,16 @@ state, advances and returns a :class:`Tape` (Drake tutorial style). A simulator 
 import dataclasses
 
 import numpy as np
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems.l1_controller import L1AdaptiveController
+from drake_cert.systems.l1_reference import L1AdaptiveControllerReference
+from drake_cert.systems.plants import (
+    ExactDiscreteLinearPlant,
+    LinearLateralPlant,
+    NonlinearLateralPlant,
+    body_state_from_error,
+)
+from drake_cert.systems.road import Road
 from pydrake.systems.analysis import (
     ApplySimulatorConfig,
     Simulator,
@@ -33,16 +43,6 @@ from pydrake.systems.primitives import (
 from drake_cert import metrics
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from systems.l1_controller import L1AdaptiveController
-from systems.l1_reference import L1AdaptiveControllerReference
-from systems.plants import (
-    ExactDiscreteLinearPlant,
-    LinearLateralPlant,
-    NonlinearLateralPlant,
-    body_state_from_error,
-)
-from systems.road import Road
 
 PLANTS = ("nonlinear", "linear", "linear_sampled")
 OFF_ROAD_M = 5.0  # |e1| (m) at which an episode stops: the car has left its lane for good
@@ -99,7 +99,7 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
     "linear_sampled" (eq. 2.45 discretised exactly with the steering held over T_s; for the
     piecewise-constant law only, whose updates happen at the same instants).
     ``reference_controller`` uses the Python LeafSystem of the same equations
-    (:class:`systems.l1_reference.L1AdaptiveControllerReference`) instead of the C++ one.
+    (:class:`drake_cert.systems.l1_reference.L1AdaptiveControllerReference`) instead of the C++ one.
     """
     law = law or settings.controller.adaptation_law
     if plant not in PLANTS:

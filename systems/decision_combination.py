@@ -1,7 +1,7 @@
 """Combined decisions that a few wrong frames cannot turn against the truth (DESIGN 6.3).
 
 Pure functions on label spans, used by the longitudinal block's speed profile
-(:meth:`systems.longitudinal.SpeedProfile.with_combined_decision`).
+(:meth:`drake_cert.systems.longitudinal.SpeedProfile.with_combined_decision`).
 
 Vocabulary. Labels are numbered in the preset's friction order; a decision's label range is a
 *span* ``(lo, hi)`` of label numbers (contiguous); the whole family ``(0, K - 1)`` is the

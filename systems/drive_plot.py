@@ -1,5 +1,5 @@
-"""Plots and tape files of drives (:func:`systems.driving.drive`): lateral offset, speed and
-the certified interval against the true stiffness, one column per drive."""
+"""Plots and tape files of drives (:func:`drake_cert.systems.driving.drive`): lateral offset, speed
+and the certified interval against the true stiffness, one column per drive."""
 
 from __future__ import annotations
 

@@ -12,7 +12,7 @@ The controller receives the curvature under the car and, with
 ``settings.controller.preview_window_s > 0`` (default), the road preview: the route's mean
 curvature over the distance the car covers in the preview window at its current speed
 (``RouteSource`` output ``curvature_preview_per_m``, input ``speed_mps``), at which the
-curvature feedforward is taken (:mod:`systems.l1_law`, "Road preview").
+curvature feedforward is taken (:mod:`drake_cert.systems.l1_law`, "Road preview").
 
 Timing per camera tick k (period T, t_k = k T): the camera takes a frame at t_k, perception
 certifies it at t_k + T/4, the interval block decides at t_k + T/2 (perception latency T/2),
@@ -21,9 +21,9 @@ modelled latency T/4 of perception is a requirement on the hardware, not a measu
 must draw ``n0 + n`` noisy samples in T/4 (the drive reports ``samples_per_s_required``; the
 wall-clock figures of a drive on a shared CPU are not that hardware).
 
-Where a decision applies (``systems.longitudinal``): the car starts ``look_ahead_m`` before the
-route (a lead-in of the first segment's road, under the envelope design), so the first frame
-shows the route's start; every decision speaks for its look point. The certified pipeline
+Where a decision applies (``drake_cert.systems.longitudinal``): the car starts ``look_ahead_m``
+before the route (a lead-in of the first segment's road, under the envelope design), so the first
+frame shows the route's start; every decision speaks for its look point. The certified pipeline
 combines its decisions: two look points closer than ``min_condition_length_m`` (no interior
 stretch of one condition on the route is shorter; checked before driving) have at most one
 boundary between them, so the hull of their certified label ranges holds on all the road
@@ -35,10 +35,10 @@ the slowest command before the last look point (the frontier); ``check_look_ahea
 camera whose look-ahead cannot carry the table's top speed that way.
 
 Switching: the controller switches where the design in force changes along the road; a wider
-(safer) design is never held back. ``synthesis.switching`` certifies the switched reference
-loops of the preset's designs (a common Lyapunov matrix, as the jointly synthesized gains
+(safer) design is never held back. ``drake_cert.synthesis.switching`` certifies the switched
+reference loops of the preset's designs (a common Lyapunov matrix, as the jointly synthesized gains
 have, or an average dwell time with per-design matrices) and the L1 reference loops with the
-filter state (``synthesis.loop_switching``); each drive reports the certificate
+filter state (``drake_cert.synthesis.loop_switching``); each drive reports the certificate
 (``switching_method``, ``loop_switching_decay_per_s``), whether its switching signal met it
 (``switching_certificate_met``) and the chatter bound (``chatter_bound_n0``,
 ``lyapunov_growth_bound``).
@@ -55,6 +55,29 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.selection import (
+    design_label_spans,
+    envelope_design_index,
+    join_design_indices,
+    preset_designs,
+)
+from drake_cert.systems.attacker import Attacker
+from drake_cert.systems.camera import CameraSource
+from drake_cert.systems.certified_interval import CertifiedInterval
+from drake_cert.systems.longitudinal import (
+    BRAKING_MARGIN_M,
+    ENVELOPE_DECEL_FRACTION,
+    LongitudinalMotion,
+    frontier_latency_s,
+    look_ahead_needed_m,
+    supported_speed_mps,
+)
+from drake_cert.systems.perception_smoothing import PerceptionSmoothing, check_decision_budget
+from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
+from drake_cert.systems.route import Route, RouteSource
+from drake_cert.systems.scenario import Scenario
+from drake_cert.systems.switching_controller import SwitchingL1Controller
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import LogVectorOutput, Saturation
@@ -66,29 +89,6 @@ from drake_cert.certification.sampler import resolve_precision
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from synthesis.selection import (
-    design_label_spans,
-    envelope_design_index,
-    join_design_indices,
-    preset_designs,
-)
-from systems.attacker import Attacker
-from systems.camera import CameraSource
-from systems.certified_interval import CertifiedInterval
-from systems.longitudinal import (
-    BRAKING_MARGIN_M,
-    ENVELOPE_DECEL_FRACTION,
-    LongitudinalMotion,
-    frontier_latency_s,
-    look_ahead_needed_m,
-    supported_speed_mps,
-)
-from systems.perception_smoothing import PerceptionSmoothing, check_decision_budget
-from systems.plants import NonlinearLateralPlant, body_state_from_error
-from systems.route import Route, RouteSource
-from systems.scenario import Scenario
-from systems.switching_controller import SwitchingL1Controller
 
 OFF_ROAD_M = 5.0  # |e1| (m) at which a drive ends: the car has left its lane for good
 REST_LIMIT_S = 5.0  # a drive ends after the car has rested this long (a stop for good)
@@ -146,7 +146,7 @@ class DrivingDiagram:
     initial_speed_mps: float
     vehicle: VehicleParams
     seed_source: str = "scenario"  # "scenario" or "os-entropy" (the scenario's seed was null)
-    switching: object = None  # the preset's synthesis.switching.SwitchingCertificate
+    switching: object = None  # the preset's drake_cert.synthesis.switching.SwitchingCertificate
     lead_in_m: float = 0.0  # the car starts this far before the route (m): the first frame
     # shows the route's start; the lead-in has the first segment's road and is driven under the
     # envelope design before any decision
@@ -316,8 +316,8 @@ def decision_lag_ticks(scenario: Scenario) -> int:
 def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
     """:class:`ConfigError` when the camera's look-ahead cannot carry the table's top speed:
     the car must be able to brake to the slowest command before the end of the road it has a
-    decision for (:func:`systems.longitudinal.supported_speed_mps`); names the largest speed
-    the look-ahead supports and the look-ahead the top speed needs."""
+    decision for (:func:`drake_cert.systems.longitudinal.supported_speed_mps`); names the largest
+    speed the look-ahead supports and the look-ahead the top speed needs."""
     cam, motion = scenario.camera, scenario.motion
     decel = ENVELOPE_DECEL_FRACTION * motion.max_decel_mps2
     floor = slowest_command_mps(table, motion.stop_speed_mps)
@@ -627,10 +627,10 @@ _CERTIFICATES_KEPT = 16
 def preset_switching_certificate(vehicle: VehicleParams, table: list[ControllerDesign],
                                  settings: Settings, preset: str):
     """The switching certificate of a preset's designs
-    (:func:`synthesis.switching.common_lyapunov_certificate`, DESIGN 5.6), memoised on the
-    values of its inputs: drives that share vehicle, designs and settings (every drive of a
+    (:func:`drake_cert.synthesis.switching.common_lyapunov_certificate`, DESIGN 5.6), memoised on
+    the values of its inputs: drives that share vehicle, designs and settings (every drive of a
     sweep or a test session) solve its LMIs once."""
-    from synthesis.switching import common_lyapunov_certificate
+    from drake_cert.synthesis.switching import common_lyapunov_certificate
 
     key = repr((dataclasses.asdict(vehicle), [dataclasses.asdict(d) for d in table],
                 dataclasses.asdict(settings), preset))
@@ -725,7 +725,7 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
                               alpha_spending=built.systems["perception"].alpha_spending,
                               guarantee=built.guarantee)
     if built.switching is not None:
-        from synthesis.switching import drive_switching_report
+        from drake_cert.synthesis.switching import drive_switching_report
 
         switches = tape.times_s[1:][np.diff(tape.design_index) != 0]
         summary.update(drive_switching_report(built.switching, switches))

@@ -5,27 +5,27 @@ Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
 Output port:  ``steering_rad`` the command u = -k_m s + u_ad + u_ff (rad), UNSATURATED:
               the diagram puts a ``Saturation`` between controller and plant.
 
-The equations are those of :mod:`systems.l1_law`, instantiated symbolically once:
+The equations are those of :mod:`drake_cert.systems.l1_law`, instantiated symbolically once:
 - ``law="gradient"``: a continuous ``SymbolicVectorSystem`` (state s_hat, w_hat, theta_hat,
   sigma_hat, u_ad; 11 states), derivatives evaluated in C++;
 - ``law="piecewise_constant"``: the law is linear in (s_hat, u_ad, s, kappa), so the
   symbolic update is decomposed into the matrices of a discrete ``AffineSystem`` with
   period T_s (state s_hat, u_ad; the command feeds s and kappa through directly).
 The speed V is a construction parameter (constant-speed episodes). A Python ``LeafSystem``
-running the same functions, :class:`systems.l1_reference.L1AdaptiveControllerReference`, is
-the readable reference; the tests check that both give the same closed loop.
+running the same functions, :class:`drake_cert.systems.l1_reference.L1AdaptiveControllerReference`,
+is the readable reference; the tests check that both give the same closed loop.
 """
 
 import numpy as np
 import pydrake.symbolic as sym
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
+from drake_cert.systems.l1_law import L1Parameters
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder
 from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from systems import l1_law
-from systems.l1_law import L1Parameters
 
 
 def _affine_matrices(expressions, variables):
@@ -83,7 +83,8 @@ class L1AdaptiveController(Diagram):
     jumps with the curvature; False for the linear plants (:func:`l1_law.l1_parameters`).
     ``curvature_preview`` adds the input port ``curvature_preview_per_m`` (1/m): the
     curvature feedforward u_ff is taken at it (the road ahead, averaged; see
-    :meth:`systems.road.Road.preview_curvature_trajectory`) instead of at ``curvature_per_m``.
+    :meth:`drake_cert.systems.road.Road.preview_curvature_trajectory`) instead of at
+    ``curvature_per_m``.
     """
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,

@@ -2,7 +2,7 @@
 
 Every function here works on floats and on ``pydrake.symbolic`` expressions: called with
 numbers it is the readable reference, called with symbolic variables it builds the
-C++-evaluated systems of :mod:`systems.l1_controller`. Symbols follow the paper:
+C++-evaluated systems of :mod:`drake_cert.systems.l1_controller`. Symbols follow the paper:
 
   u      = -k_m s + u_ad + u_ff                      steering command (rad), then saturated
   u_ff   = k_ff psidot_des, psidot_des = V kappa      curvature feedforward (nominal e1 = 0)
@@ -21,7 +21,7 @@ after a step from straight to R = 50 m (steady 0.07 rad). At constant kappa the 
 
 Road preview (``controller.preview_ahead_s``, ``preview_window_s``; defaults 0.4 s, 0.4 s):
 u_ff is taken at the mean curvature kappa_p of the road the car covers in the next 0.4 s
-(:meth:`systems.road.Road.preview_curvature_trajectory`); the predictor is driven by that
+(:meth:`drake_cert.systems.road.Road.preview_curvature_trajectory`); the predictor is driven by that
 same u_ff and by ``g_hat V kappa`` at the curvature under the car. Without it a step from
 straight to R = 50 m asks the front tire, already at 85% of mu g on the arc, for the yaw
 moment of a step in yaw rate: the steering peaked at 1.4-7.6x its steady value (saturated at
@@ -65,17 +65,15 @@ run ends off the road after 9.5 s in 1 200 steps.
 Numerics: along the gradient law the projection keeps each estimate in its set only in
 continuous time; at the set's boundary its restoring rate grows like Gamma |y| f, so
 explicit fixed-step integration diverges there (seen with RK2 at 5 us); the simulator uses
-an implicit, error-controlled integrator (``systems.closed_loop.simulator_config``).
+an implicit, error-controlled integrator (``drake_cert.systems.closed_loop.simulator_config``).
 """
 
 import dataclasses
 
 import numpy as np
 import scipy.linalg
-
-from drake_cert.config import Settings, VehicleParams
-from synthesis.design import ControllerDesign
-from synthesis.uncertainty import (
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.uncertainty import (
     E1_SELECTOR,
     curvature_feedforward_gain,
     matched_disturbance,
@@ -84,7 +82,9 @@ from synthesis.uncertainty import (
     reference_gain,
     stiffness_grid,
 )
-from systems import generic_math as gm
+from drake_cert.systems import generic_math as gm
+
+from drake_cert.config import Settings, VehicleParams
 
 LAWS = ("piecewise_constant", "gradient")
 
@@ -203,7 +203,8 @@ def steering_command(p: L1Parameters, s, u_ad, curvature, feedforward_curvature=
     """``u = -k_m s + u_ad + u_ff`` (rad, before saturation).
 
     ``u_ff`` is taken at ``feedforward_curvature`` (1/m; the road-preview curvature, see
-    :func:`systems.road.Road.preview_curvature_trajectory`), or at ``curvature`` when None.
+    :func:`drake_cert.systems.road.Road.preview_curvature_trajectory`), or at ``curvature`` when
+    None.
     """
     kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
     return -gm.dot(p.k_m, s) + u_ad + curvature_feedforward(p, kappa_ff)

@@ -1,21 +1,22 @@
-"""A readable Python ``LeafSystem`` running the L1 equations of :mod:`systems.l1_law`.
+"""A readable Python ``LeafSystem`` running the L1 equations of :mod:`drake_cert.systems.l1_law`.
 
-Same ports and the same numbers as :class:`systems.l1_controller.L1AdaptiveController`, with
-the equations evaluated in Python (about 20 us per evaluation, so ~10x slower): it is the
+Same ports and the same numbers as :class:`drake_cert.systems.l1_controller.L1AdaptiveController`,
+with the equations evaluated in Python (about 20 us per evaluation, so ~10x slower): it is the
 reference the C++-evaluated controller is tested against, and the place to read the law.
 """
 
 import numpy as np
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from systems import l1_law
 
 
 class L1AdaptiveControllerReference(LeafSystem):
-    """L1 adaptive lateral controller, Python reference (see :mod:`systems.l1_controller`)."""
+    """L1 adaptive lateral controller, Python reference (see
+    :mod:`drake_cert.systems.l1_controller`)."""
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
                  speed_mps: float, law: str | None = None,

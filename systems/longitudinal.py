@@ -5,7 +5,7 @@ Input port:
                            it applies, m of arc length), ``speed_command_mps`` (0 = stop),
                            ``design_index``, ``time_s`` and optionally ``look_m`` (the look
                            point of the frame behind it; default ``position_m``)
-                           (``systems.certified_interval.Decision``)
+                           (``drake_cert.systems.certified_interval.Decision``)
 Continuous state:         ``[x, v]``: arc length along the route (m) and forward speed (m/s)
                            (in a C++ ``SymbolicVectorSystem``, as deviations from the initial
                            values; ``speed_planner`` computes dv/dt in Python)
@@ -36,7 +36,7 @@ window (the scenario's ``min_condition_length_m``, which no interior stretch of 
 condition on the route is as short as, checked before driving) have at most one condition
 boundary between them, so if both frames are right the hull of their ranges holds between
 them. The road between consecutive look points runs under the range of
-:func:`systems.decision_combination.tolerant_span`: the hull, over every set of at most
+:func:`drake_cert.systems.decision_combination.tolerant_span`: the hull, over every set of at most
 ``tolerance`` frames left out, of the intersection of the hulls of the pairs that avoid them;
 it holds the condition there whenever at most ``tolerance`` of the frames it uses are wrong
 (DESIGN 6.3). A new decision recomputes the stretches within the window behind it; their
@@ -60,8 +60,8 @@ reach v_f before f. Between two updates the frontier stays put for at most
 :func:`frontier_latency_s` = (1 + 3/4) T, and combined decisions that tolerate j wrong frames
 decide the road only up to the look point j ticks back, so a look-ahead L supports the
 constant speeds with ``v^2 <= v_f^2 + 2 a (L - m - (1.75 + j) T v)``
-(:func:`supported_speed_mps`; the scenario check ``systems.driving.check_look_ahead`` refuses a
-camera that cannot carry the table's top speed).
+(:func:`supported_speed_mps`; the scenario check ``drake_cert.systems.driving.check_look_ahead``
+refuses a camera that cannot carry the table's top speed).
 The envelope keeps (1 - fraction) of the braking authority for the tracking law, so the car
 catches up with it after a late (too close) entry.
 
@@ -82,12 +82,12 @@ import math
 from collections.abc import Callable, Sequence
 
 import pydrake.symbolic as sym
+from drake_cert.systems.decision_combination import is_within, stretch_spans
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 
 from drake_cert.errors import ConfigError
-from systems.decision_combination import is_within, stretch_spans
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
 BRAKING_MARGIN_M = 2.0  # a command ahead is reached this far before its point (m)
@@ -155,7 +155,7 @@ class SpeedProfile:
                                command_of: Callable[[int], float],
                                envelope_index: int) -> "SpeedProfile":
         """The profile after one decision, combined with the decisions around it by the rule
-        of :mod:`systems.decision_combination` (module docstring, "Decisions combined").
+        of :mod:`drake_cert.systems.decision_combination` (module docstring, "Decisions combined").
 
         ``spans[d]``: the label span of design d in friction order; ``design_of_span``: its
         inverse; ``tolerance``: the wrong decisions among the frames around a point that the

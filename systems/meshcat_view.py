@@ -16,7 +16,7 @@ import numpy as np
 from pydrake.geometry import Box, Meshcat, Rgba
 from pydrake.math import RigidTransform, RotationMatrix
 
-STATUS_COLOURS = {  # status code (systems.certified_interval) -> RGBA
+STATUS_COLOURS = {  # status code (drake_cert.systems.certified_interval) -> RGBA
     0: (0.1, 0.75, 0.2, 1.0),  # certified
     1: (1.0, 0.65, 0.0, 1.0),  # envelope
     2: (0.85, 0.1, 0.1, 1.0),  # stop

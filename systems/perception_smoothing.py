@@ -14,7 +14,7 @@ tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult
 - ``decision="fixed"``: the fixed-n certificate at the observed frame
   (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation samples, joint
   Clopper-Pearson bounds at ``alpha``), from which the run-time interval of any label range
-  is read off (``systems.certified_interval``); the robust conformal interval needs it.
+  is read off (``drake_cert.systems.certified_interval``); the robust conformal interval needs it.
 - ``mode="certified"``, ``task="regress"``: median smoothing's ``(median, lower, upper)`` at
   budget ``eps`` (:meth:`MedianSmoothedRegressor.certify_interval`).
 - ``mode="base"``: the raw prediction of the model f (label, or stiffness in N/rad): the
@@ -32,6 +32,7 @@ import dataclasses
 import math
 
 import torch
+from drake_cert.systems.camera import CameraFrame
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 from scipy.stats import norm
@@ -53,7 +54,6 @@ from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import look_plan, percentile_bound_indices
 from drake_cert.errors import CertificationError, ConfigError
-from systems.camera import CameraFrame
 
 MODES = ("certified", "base")
 TASKS = ("classify", "regress")

@@ -21,6 +21,7 @@ discretisation of eq. 2.45 at a sample period, for fixed (C, V).
 import numpy as np
 import pydrake.symbolic as sym
 import scipy.linalg
+from drake_cert.systems import generic_math as gm
 from pydrake.systems.analysis import DiscreteTimeApproximation
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
@@ -28,7 +29,6 @@ from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVector
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
 from drake_cert.errors import ConfigError
-from systems import generic_math as gm
 
 PLANT_INPUTS = ("steering_rad", "stiffness_n_per_rad", "friction_mu", "speed_mps",
                 "curvature_per_m")

@@ -157,8 +157,8 @@ class Route:
     def preview_curvature_at(self, s_m, ahead_m, window_m) -> np.ndarray:
         """Mean curvature (1/m) over ``[s + ahead_m - window_m, s + ahead_m]`` (m), from
         :meth:`curvature_integral` (exact on segments and clothoid ramps; as
-        ``systems.road.Road.preview_curvature_at``). ``ahead_m``, ``window_m`` >= 0 may be
-        arrays (they scale with the speed); where ``window_m`` is 0 (the car at rest) the
+        ``drake_cert.systems.road.Road.preview_curvature_at``). ``ahead_m``, ``window_m`` >= 0 may
+        be arrays (they scale with the speed); where ``window_m`` is 0 (the car at rest) the
         mean is its limit, the curvature at ``s + ahead_m``."""
         if np.ndim(s_m) == np.ndim(ahead_m) == np.ndim(window_m) == 0:  # one point: no numpy
             hi, w = float(s_m) + float(ahead_m), float(window_m)
@@ -223,7 +223,7 @@ class RouteSource(LeafSystem):
     and the output ``curvature_preview_per_m`` (1, 1/m), the mean curvature over
     ``[s + V ahead_s - V window_s, s + V ahead_s]`` (:meth:`Route.preview_curvature_at`): the
     road the car covers in the window at its current speed, for the curvature feedforward
-    (:mod:`systems.l1_law`, "Road preview"). At V = 0 it is the curvature under the car.
+    (:mod:`drake_cert.systems.l1_law`, "Road preview"). At V = 0 it is the curvature under the car.
     """
 
     def __init__(self, route: Route, *, preview_ahead_s: float = 0.0,

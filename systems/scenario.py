@@ -14,6 +14,7 @@ import math
 from importlib import resources
 from pathlib import Path
 
+from drake_cert.systems.route import SegmentSpec
 from pydrake.systems.analysis import SimulatorConfig
 
 from drake_cert.config import (
@@ -23,7 +24,6 @@ from drake_cert.config import (
     load_typed,
 )
 from drake_cert.errors import ConfigError
-from systems.route import SegmentSpec
 
 SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "sunny_into_snow",
                      "weather_change_in_curve", "sunny_straight_to_snow", "curve_entry_changes")
@@ -196,7 +196,7 @@ class Scenario:
     transition_m: float = 10.0  # curvature ramps over this length at segment boundaries (m)
     # the shortest stretch of one road condition the car assumes (m): decisions bridge
     # abstentions over shorter spans; a route with a shorter stretch (first and last
-    # excepted) is refused (systems.driving.check_route_is_seen)
+    # excepted) is refused (drake_cert.systems.driving.check_route_is_seen)
     min_condition_length_m: float = 60.0
     # wrong certified decisions among the frames around any point that the combined decisions
     # tolerate (DESIGN 6.3): a stretch is narrowed only to what every choice of this many

@@ -4,11 +4,11 @@ Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
               ``curvature_per_m`` kappa (1/m), ``speed_mps`` V (m/s),
               ``design_index`` (index into ``designs``; a float holding an integer);
               with ``curvature_preview=True`` also ``curvature_preview_per_m`` kappa_p (1/m),
-              the road preview (``systems.route.RouteSource``): the feedforward u_ff, in the
-              command and in the predictor, is taken at kappa_p instead of kappa, while the
+              the road preview (``drake_cert.systems.route.RouteSource``): the feedforward u_ff, in
+              the command and in the predictor, is taken at kappa_p instead of kappa, while the
               predictor's ``g_hat V kappa`` and its jump-free coordinates keep the curvature
-              under the car (``systems.l1_law``, "Road preview").
-Output ports: ``steering_rad`` u (rad, UNSATURATED, as :mod:`systems.l1_controller`),
+              under the car (``drake_cert.systems.l1_law``, "Road preview").
+Output ports: ``steering_rad`` u (rad, UNSATURATED, as :mod:`drake_cert.systems.l1_controller`),
               ``active_design_index`` the design in use, ``scheduled_speed_mps`` the grid
               speed whose parameters are in use (m/s).
 Discrete state (period T_s = settings.controller.sample_period_s, offset 0):
@@ -16,7 +16,8 @@ Discrete state (period T_s = settings.controller.sample_period_s, offset 0):
   (the gradient law: slots 0-4 unused, its state is continuous; "The gradient law" below).
 
 ``law="piecewise_constant"`` (default): the law is the piecewise-constant one of
-:mod:`systems.l1_law` (DESIGN 4), unchanged; only its parameters move. At each sample t_k,
+:mod:`drake_cert.systems.l1_law` (DESIGN 4), unchanged; only its parameters move. At each sample
+t_k,
 with the inputs read at t_k:
 1. if ``design_index`` differs from the active design, the requested one becomes active at
    this sample (a request made in (t_{k-1}, t_k] acts at t_k; the dwell time is enforced
@@ -43,7 +44,7 @@ other memory (its estimate is recomputed from s_hat - s at every sample). A chan
 speed grid point within a design changes the parameters only (gain scheduling).
 
 The gradient law (``law="gradient"``, leaf :class:`SwitchingGradientL1Law`): the continuous
-law of :mod:`systems.l1_law` (``gradient_controller_derivatives``: Gamma, the projection
+law of :mod:`drake_cert.systems.l1_law` (``gradient_controller_derivatives``: Gamma, the projection
 operator) on the continuous state x = [q_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad],
 integrated by the simulator with the parameters of the active (design, grid point). The
 sample at T_s (a periodic unrestricted update) switches and schedules exactly by steps 1
@@ -70,8 +71,8 @@ five pairs): the largest change of the steering in one 1 ms step around the swit
 filter (k = 350 rad/s) moving u_ad within the first ms, not a step. Peak |e1| is the same
 to 2 mm. The estimates: they must start in their new sets (outside one, f > 1 and the
 projection's restoring rate grows like Gamma |y| f, the stiff case of the notes in
-:mod:`systems.l1_law`); keeping them or resetting them (w_hat at the centre, theta = sigma =
-0) gave the same peak |e1| to 0.1 mm and the same steering changes to 0.001 rad: they
+:mod:`drake_cert.systems.l1_law`); keeping them or resetting them (w_hat at the centre, theta =
+sigma = 0) gave the same peak |e1| to 0.1 mm and the same steering changes to 0.001 rad: they
 re-converge at the adaptation loop's rate, sqrt(Gamma b_m' P b_m) = 1 400-19 300 rad/s for
 the shipped designs, within a few ms. Keeping them is the continuous choice, and w_hat is
 re-expressed because it is one physical quantity (C); theta and sigma depend on (k_m, C_hat,
@@ -109,14 +110,14 @@ import math
 
 import numpy as np
 import pydrake.symbolic as sym
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
+from drake_cert.systems.l1_law import L1Parameters
 from pydrake.systems.framework import BasicVector, Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Multiplexer, SymbolicVectorSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
-from synthesis.design import ControllerDesign
-from systems import l1_law
-from systems.l1_law import L1Parameters
 
 S_HAT, U_AD, DESIGN, GRID, STOPPED, HELD = slice(0, 4), 4, 5, 6, 7, 8
 STATE_SIZE = 9
@@ -601,7 +602,7 @@ def _row_product_system(n_curvatures: int = 1) -> SymbolicVectorSystem:
     in C++; kappas = [kappa] or, with the road preview, [kappa, kappa_p] (n = 2).
 
     Drake 1.51's SymbolicVectorSystem needs a state in a continuous diagram: one constant
-    dummy state (derivative 0), as in :mod:`systems.plants`.
+    dummy state (derivative 0), as in :mod:`drake_cert.systems.plants`.
     """
     r = sym.MakeVectorVariable(5 + n_curvatures, "r")
     s = sym.MakeVectorVariable(4, "s")

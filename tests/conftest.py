@@ -7,13 +7,15 @@ import pytest
 def default_design_table():
     """The design table synthesized once for the shipped vehicle, conditions and settings.
 
-    A ``synthesis.design_io.DesignTable`` (designs in ``synthesis.table.design_label_ranges``
-    order); takes a few seconds, shared by the synthesis and verify tests.
+    A ``drake_cert.synthesis.design_io.DesignTable`` (designs in
+    ``drake_cert.synthesis.table.design_label_ranges`` order); takes a few seconds, shared by the
+    synthesis and verify tests.
     """
+    from drake_cert.synthesis.design_io import DesignTable
+    from drake_cert.synthesis.table import synthesize_table
+
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.io import provenance
-    from synthesis.design_io import DesignTable
-    from synthesis.table import synthesize_table
 
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = synthesize_table(vehicle, conditions, settings)
@@ -26,7 +28,7 @@ def default_design_table():
 def certified_design_table(default_design_table):
     """:func:`default_design_table` with its switching certificates (what
     ``drake-cert synthesize --out`` writes); computed once per session (several seconds)."""
-    from synthesis.design_io import with_switching_certificates
+    from drake_cert.synthesis.design_io import with_switching_certificates
 
     return with_switching_certificates(default_design_table)
 

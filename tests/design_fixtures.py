@@ -4,9 +4,9 @@ import dataclasses
 
 import numpy as np
 import scipy.linalg
+from drake_cert.synthesis.design import ControllerDesign
 
 from drake_cert.dynamics import lateral_error_dynamics
-from synthesis.design import ControllerDesign
 
 
 def lqr_design(vehicle, stiffness_lo, stiffness_hi, speed_mps, filter_gain=200.0,
@@ -30,7 +30,8 @@ def lqr_design(vehicle, stiffness_lo, stiffness_hi, speed_mps, filter_gain=200.0
 
 @dataclasses.dataclass(frozen=True)
 class FakeDecision:
-    """The fields of systems.certified_interval.Decision that LongitudinalMotion reads."""
+    """The fields of drake_cert.systems.certified_interval.Decision that LongitudinalMotion
+    reads."""
 
     time_s: float
     position_m: float

@@ -1,8 +1,8 @@
 """A curvature step (straight -> design radius) makes no steering spike (DESIGN 4.2-4.3).
 
 The measured e2dot = r - V kappa jumps by -V dkappa at a step; the predictor holds its state
-as q = s + V kappa e4 (systems.l1_law.predicted_measurement), so the prediction error, and
-with it the piecewise-constant estimate, does not jump. Before, the steering saturated at
+as q = s + V kappa e4 (drake_cert.systems.l1_law.predicted_measurement), so the prediction error,
+and with it the piecewise-constant estimate, does not jump. Before, the steering saturated at
 0.5 rad after the step for every single-label design (steady about 0.07 rad). The rest of the
 spike was the front tire, at 85% of mu g on the arc, asked for a step in yaw rate: the road
 preview of the feedforward (controller.preview_ahead_s / preview_window_s) starts the turn
@@ -14,13 +14,18 @@ import dataclasses
 
 import numpy as np
 import pytest
+from drake_cert.synthesis.uncertainty import matched_disturbance
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import (
+    build_closed_loop,
+    set_plant_state,
+    simulate,
+    simulator_config,
+)
+from drake_cert.systems.road import Road
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 
 from drake_cert.config import load_settings, load_vehicle
-from synthesis.uncertainty import matched_disturbance
-from systems import l1_law
-from systems.closed_loop import build_closed_loop, set_plant_state, simulate, simulator_config
-from systems.road import Road
 
 CAR = load_vehicle()
 SETTINGS = load_settings()

@@ -6,10 +6,10 @@ import dataclasses
 import json
 
 import pytest
+from drake_cert.systems.scenario import SHIPPED_SCENARIOS, scenario_path
 
 from drake_cert.cli import main
 from drake_cert.config import load_vehicle
-from systems.scenario import SHIPPED_SCENARIOS, scenario_path
 
 KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min_speed_mps",
         "distance_m", "simulated_s", "wall_s", "interval_covers_true_fraction",
@@ -20,7 +20,7 @@ KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min
 def designs(tmp_path_factory, certified_design_table):
     """The file `drake-cert synthesize --out` writes for the shipped inputs (the session's
     table and certificates; the command itself is tested in test_verify.py)."""
-    from synthesis.design_io import save_design_table
+    from drake_cert.synthesis.design_io import save_design_table
 
     path = tmp_path_factory.mktemp("designs") / "designs.yaml"
     save_design_table(path, certified_design_table)
@@ -121,8 +121,9 @@ def test_a_table_whose_envelope_has_no_safe_speed_is_refused_not_driven(designs,
                                                                          capsys):
     import dataclasses
 
+    from drake_cert.synthesis.design_io import load_design_file, save_design_table
+
     from drake_cert.config import load_conditions
-    from synthesis.design_io import load_design_file, save_design_table
 
     table = load_design_file(designs)
     family = tuple(load_conditions().preset("robotcar-like").labels)
@@ -202,7 +203,7 @@ def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supp
 
 
 def test_drive_help_names_every_shipped_scenario(capsys):
-    from systems.scenario import SHIPPED_SCENARIOS
+    from drake_cert.systems.scenario import SHIPPED_SCENARIOS
 
     with pytest.raises(SystemExit):
         main(["drive", "--help"])

@@ -15,20 +15,20 @@ import dataclasses
 
 import numpy as np
 import pytest
-
-from drake_cert.config import load_conditions, load_settings, load_vehicle
-from drake_cert.errors import ConfigError
-from synthesis.selection import envelope_design_index, preset_designs
-from synthesis.table import synthesize_table
-from systems.driving import (
+from drake_cert.synthesis.selection import envelope_design_index, preset_designs
+from drake_cert.synthesis.table import synthesize_table
+from drake_cert.systems.driving import (
     build_certified_driving_diagram,
     drive,
     drive_scenario,
     time_left_lane,
     with_overrides,
 )
-from systems.route import SegmentSpec
-from systems.scenario import SHIPPED_SCENARIOS, load_scenario
+from drake_cert.systems.route import SegmentSpec
+from drake_cert.systems.scenario import SHIPPED_SCENARIOS, load_scenario
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
 
 VOLATILE = ("wall_s", "real_time_factor")
 
@@ -238,7 +238,7 @@ def test_on_the_snow_route_the_certified_car_keeps_its_speed_under_attack(setup)
 
 def hand_tape(truth, lo, hi, speed, design_speed, dt=0.05):
     """A DriveTape from per-sample arrays: only the fields the protection metrics read matter."""
-    from systems.driving import DriveTape
+    from drake_cert.systems.driving import DriveTape
 
     n = len(truth)
     zeros = np.zeros(n)
@@ -254,7 +254,7 @@ def hand_tape(truth, lo, hi, speed, design_speed, dt=0.05):
 
 
 def test_unprotected_time_counts_a_design_missing_the_truth_or_a_car_too_fast_for_it():
-    from systems.driving import protection
+    from drake_cert.systems.driving import protection
 
     n = 21  # 20 intervals of 50 ms
     truth = np.full(n, 50e3)
@@ -351,7 +351,7 @@ def test_an_injected_wrong_frame_leaves_the_design_in_force_on_the_truth(setup, 
 def test_the_guarantee_failure_bound_counts_every_frame_the_rule_uses():
     # DESIGN 6.2: E[wrong frames] <= A + P m; more than j of them is needed for the design in
     # force to miss, so P(miss) <= (A + P m) / (j + 1) (Markov), computed from the plan.
-    from systems.driving import guarantee_failure_bound, guarantee_summary
+    from drake_cert.systems.driving import guarantee_failure_bound, guarantee_summary
 
     class Design:  # only the speeds matter to the plan
         def __init__(self, speed):
@@ -387,7 +387,7 @@ def test_the_guarantee_failure_bound_counts_every_frame_the_rule_uses():
 def test_a_regression_drive_whose_calibration_gives_the_envelope_says_so():
     import math
 
-    from systems.driving import _calibration_warnings
+    from drake_cert.systems.driving import _calibration_warnings
 
     sc = load_scenario("dry_to_snow")
     regress = dataclasses.replace(sc, perception=dataclasses.replace(sc.perception,

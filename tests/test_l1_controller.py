@@ -5,14 +5,14 @@ import dataclasses
 import numpy as np
 import pytest
 from design_fixtures import lqr_design
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.l1_controller import L1AdaptiveController
+from drake_cert.systems.road import Road
 from pydrake.systems.analysis import SimulatorConfig
 
 from drake_cert import metrics
 from drake_cert.config import load_conditions, load_settings, load_vehicle
-from systems import l1_law
-from systems.closed_loop import simulate
-from systems.l1_controller import L1AdaptiveController
-from systems.road import Road
 
 CAR = load_vehicle()
 SETTINGS = load_settings()
@@ -106,7 +106,7 @@ def test_piecewise_constant_estimate_cancels_the_prediction_error_in_one_period(
 
 def test_adaptation_sets_contain_the_true_parameters_of_the_interval():
     p = l1_law.l1_parameters(CAR, DESIGN, SETTINGS, SPEED)
-    from synthesis.uncertainty import matched_uncertainty
+    from drake_cert.synthesis.uncertainty import matched_uncertainty
 
     for c in np.linspace(*DESIGN.interval, 7):
         w, theta, _ = matched_uncertainty(CAR, c, DESIGN.nominal_stiffness_n_per_rad, SPEED,
@@ -198,10 +198,10 @@ def test_car_leaves_the_lane_far_above_the_grip_limit(heavy_rain_design):
 # The C_hi end takes ~90 s (the stiff gradient law near its projection bound): slow target.
 @pytest.mark.parametrize("end", [0, pytest.param(1, marks=pytest.mark.slow)])
 def test_gradient_law_settles_at_the_synthesis_steady_state(heavy_rain_design, end):
-    # The simulated loop on a constant curve ends where synthesis.equilibrium predicts (the
-    # offset the design's steady-state condition is computed from); the piecewise-constant
+    # The simulated loop on a constant curve ends where drake_cert.synthesis.equilibrium predicts
+    # (the offset the design's steady-state condition is computed from); the piecewise-constant
     # law, compensating the unmatched estimate at DC, ends on the lane centre.
-    from synthesis.equilibrium import adaptive_steady_state
+    from drake_cert.synthesis.equilibrium import adaptive_steady_state
 
     d = heavy_rain_design
     stiffness = d.certified_interval[end]  # far from C_hat: a visible gradient-law offset

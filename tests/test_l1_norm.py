@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 import scipy.integrate
+from drake_cert.synthesis import l1_norm
+from drake_cert.synthesis.conditions import filtered_plant_realisation
+from drake_cert.synthesis.uncertainty import nominal_model
+from drake_cert.synthesis.verify import l1_norm_by_quadrature
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drake_cert.config import load_vehicle
-from synthesis import l1_norm
-from synthesis.conditions import filtered_plant_realisation
-from synthesis.uncertainty import nominal_model
-from synthesis.verify import l1_norm_by_quadrature
 
 
 @pytest.mark.parametrize("a", [0.05, 1.0, 37.0, 2.0e3])
@@ -96,7 +96,7 @@ def test_random_stable_systems_agree_with_independent_quadrature():
 
 def test_batched_filtered_plant_norms_equal_one_at_a_time_norms():
     """The speed search's shared-pole evaluation over w agrees with l1_norm per realisation."""
-    from synthesis.conditions import high_passed_plant_l1_norms
+    from drake_cert.synthesis.conditions import high_passed_plant_l1_norms
 
     k_m = [0.0349, 0.0132, 0.528, 0.0599]  # corner-LMI gain of the 20k-120k envelope
     for speed, k in [(5.0, 500.0), (12.0, 50.0), (30.0, 200.0)]:

@@ -1,5 +1,7 @@
 """The one-way layout of DESIGN 1, checked by walking every module's imports.
 
+The folders systems/ and synthesis/ install as ``drake_cert.systems`` and ``drake_cert.synthesis``.
+
 foundation (drake_cert/*.py) <- perception, certification  (never systems or synthesis)
 foundation <- synthesis <- systems
 cli and experiments may import from everywhere; nothing else imports them. No cycles.
@@ -14,13 +16,15 @@ import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("drake_cert", "systems", "synthesis")
+# systems/ and synthesis/ install as drake_cert.systems and drake_cert.synthesis (pyproject.toml)
+INSTALLED_AS = {"systems": "drake_cert.systems", "synthesis": "drake_cert.synthesis"}
 
 
 def module_name(path: Path) -> str:
     parts = list(path.relative_to(ROOT).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
-    return ".".join(parts)
+    return ".".join([INSTALLED_AS.get(parts[0], parts[0]), *parts[1:]])
 
 
 def all_modules() -> dict[str, Path]:
@@ -52,10 +56,8 @@ def imported_modules(path: Path, name: str, known: set[str]) -> set[str]:
 
 def layer(module: str) -> str:
     parts = module.split(".")
-    if parts[0] != "drake_cert":
-        return parts[0]
     if len(parts) > 1 and parts[1] in ("perception", "certification", "experiments", "cli",
-                                       "data"):
+                                       "data", "systems", "synthesis"):
         return parts[1]
     return "foundation"
 
@@ -121,7 +123,22 @@ def test_there_are_no_import_cycles():
 
 def test_the_rule_checker_catches_a_violation(tmp_path):
     bad = tmp_path / "bad.py"
-    bad.write_text("def f():\n    from systems.plants import LinearLateralPlant\n")
+    bad.write_text("def f():\n    from drake_cert.systems.plants import LinearLateralPlant\n")
     deps = imported_modules(bad, "drake_cert.certification.bad", set(all_modules()))
-    assert "systems.plants" in deps
-    assert layer("systems.plants") not in ALLOWED[layer("drake_cert.certification.bad")]
+    assert "drake_cert.systems.plants" in deps
+    assert layer("drake_cert.systems.plants") not in ALLOWED[layer("drake_cert.certification.bad")]
+
+
+def test_nothing_imports_the_folders_by_their_bare_names():
+    """``systems`` and ``synthesis`` are not import names (the wheel has neither): every import
+    of them, in the package, tests, benchmarks and examples, goes through ``drake_cert``."""
+    bare = []
+    for folder in (*PACKAGES, "tests", "benchmarks", "examples"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in ast.walk(ast.parse(path.read_text())):
+                names = ([a.name for a in node.names] if isinstance(node, ast.Import) else
+                         [node.module or ""] if isinstance(node, ast.ImportFrom)
+                         and node.level == 0 else [])
+                bare += [f"{path.relative_to(ROOT)}: {n}" for n in names
+                         if n.split(".")[0] in INSTALLED_AS]
+    assert not bare, "\n".join(bare)

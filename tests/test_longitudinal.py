@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 from design_fixtures import FakeDecision
+from drake_cert.systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_cert.errors import ConfigError
-from systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
 
 A_DEC, A_ACC = 4.0, 2.0
 TOL = 1e-6  # integration roundoff on the bounds
@@ -318,7 +318,11 @@ def test_the_frontier_brakes_for_the_slowest_command_at_the_last_look_point():
 
 
 def test_the_supported_speed_brakes_to_the_floor_on_a_frontier_that_has_not_moved():
-    from systems.longitudinal import frontier_latency_s, look_ahead_needed_m, supported_speed_mps
+    from drake_cert.systems.longitudinal import (
+        frontier_latency_s,
+        look_ahead_needed_m,
+        supported_speed_mps,
+    )
 
     v = supported_speed_mps(60.0, 5.0, decel_mps2=3.6, margin_m=2.0, floor_speed_mps=6.23)
     tau = frontier_latency_s(5.0)

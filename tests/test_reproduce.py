@@ -266,7 +266,7 @@ def _nudged(designs, factor: float = 1.0 + 1e-9, field=None, labels=None):
     design of ``labels``), as another CPU's last digits would move it."""
     import dataclasses
 
-    from synthesis.design import ControllerDesign
+    from drake_cert.synthesis.design import ControllerDesign
 
     def walk(x):
         if isinstance(x, float):

@@ -4,12 +4,17 @@ import re
 
 import pytest
 import yaml
+from drake_cert.systems.route import Route
+from drake_cert.systems.scenario import (
+    SHIPPED_SCENARIOS,
+    load_scenario,
+    scenario_path,
+    scenarios_dir,
+)
 
 from drake_cert.config import load_conditions
 from drake_cert.errors import ConfigError
 from drake_cert.perception.models import model_path
-from systems.route import Route
-from systems.scenario import SHIPPED_SCENARIOS, load_scenario, scenario_path, scenarios_dir
 
 
 @pytest.mark.parametrize("name", SHIPPED_SCENARIOS)

@@ -5,13 +5,13 @@ import dataclasses
 import numpy as np
 import pytest
 import scipy.linalg
+from drake_cert.synthesis import conditions as cond
+from drake_cert.synthesis.equilibrium import adaptive_steady_state
+from drake_cert.synthesis.table import design_label_ranges, friction_lower_bound, synthesize_design
+from drake_cert.synthesis.verify import cornering_slip_angles
 
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
 from drake_cert.dynamics import lateral_error_dynamics
-from synthesis import conditions as cond
-from synthesis.equilibrium import adaptive_steady_state
-from synthesis.table import design_label_ranges, friction_lower_bound, synthesize_design
-from synthesis.verify import cornering_slip_angles
 
 
 def _design(table, *labels):
@@ -90,7 +90,7 @@ def test_single_label_speeds_follow_friction_not_stiffness(default_design_table)
 
 @pytest.mark.parametrize("utilisation", [0.1, 0.5, 0.85, 0.99])
 def test_steady_tire_slip_matches_the_axle_balance_through_the_fiala_force(utilisation):
-    from synthesis.verify import cornering_normalised_slip
+    from drake_cert.synthesis.verify import cornering_normalised_slip
 
     vehicle, mu, radius = load_vehicle(), 0.7, 50.0
     speed = np.sqrt(utilisation * mu * GRAVITY_MPS2 * radius)

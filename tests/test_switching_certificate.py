@@ -1,5 +1,5 @@
-"""Switching among a preset's designs (synthesis.switching): what is proved, checked without
-the solver that found it, and what verify refuses.
+"""Switching among a preset's designs (drake_cert.synthesis.switching): what is proved, checked
+without the solver that found it, and what verify refuses.
 
 The claims, for the shipped vehicle, conditions and settings:
 - with the gains synthesized jointly (the default) every preset's designs share one Lyapunov
@@ -22,12 +22,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import yaml
-
-from drake_cert import cli
-from drake_cert.dynamics import lateral_error_dynamics
-from synthesis import gains, switching
-from synthesis.design_io import DesignTable, load_design_file, save_design_table
-from synthesis.switching import (
+from drake_cert.synthesis import gains, switching
+from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
+from drake_cert.synthesis.switching import (
     COMMON,
     DWELL,
     check_switching_certificate,
@@ -35,7 +32,10 @@ from synthesis.switching import (
     design_key,
     switching_families,
 )
-from synthesis.verify import SWITCHING, verify_design_table
+from drake_cert.synthesis.verify import SWITCHING, verify_design_table
+
+from drake_cert import cli
+from drake_cert.dynamics import lateral_error_dynamics
 
 STEP_S = 0.01  # switching period of the simulations (s)
 ACCEL_MPS2 = 4.0  # |dV/dt| of the simulations
@@ -51,8 +51,8 @@ def certified(certified_design_table) -> DesignTable:
 def separate(default_design_table) -> DesignTable:
     """robotcar-like's designs with each range's own gain LMI (``gains="separate"``), and
     their switching certificate."""
-    from synthesis.design_io import with_switching_certificates
-    from synthesis.table import synthesize_table
+    from drake_cert.synthesis.design_io import with_switching_certificates
+    from drake_cert.synthesis.table import synthesize_table
 
     t = default_design_table
     conditions = dataclasses.replace(
@@ -244,8 +244,8 @@ def test_every_presets_l1_reference_loops_share_a_matrix_with_the_filter_state(c
     """z = [s, u_ad]: one P_z with R_i' P_z + P_z R_i + 2 lambda_z P_z <= 0 at both ends of
     every design's interval and every speed of a grid between the synthesis's grid speeds (the
     piecewise-constant law, the one that runs)."""
-    from synthesis.loop_switching import check_loop_certificate, loop_matrices
-    from synthesis.switching import certified_rate
+    from drake_cert.synthesis.loop_switching import check_loop_certificate, loop_matrices
+    from drake_cert.synthesis.switching import certified_rate
 
     for c in certified.switching:
         assert c.loop_law == "piecewise_constant" and c.loop_decay_rate_per_s > 0.05
@@ -408,7 +408,7 @@ def test_a_malformed_switching_section_is_refused_naming_the_key(rtk_file, tmp_p
 
 
 def test_the_chatter_bound_is_the_worst_burst_beyond_one_switch_per_average_dwell():
-    from synthesis.switching import chatter_bound
+    from drake_cert.synthesis.switching import chatter_bound
 
     assert chatter_bound([], 1.0) == 0.0
     assert chatter_bound([3.0], 1.0) == 1.0  # one switch: N(t, T) = 1 on any interval
@@ -426,7 +426,7 @@ def test_when_the_joint_lmi_is_infeasible_every_range_falls_back_to_its_own_lmi(
     """robotcar-like alone at a decay rate of 0.5/s: each range's own gain LMI is feasible, the
     shared one is not; the joint synthesis then gives exactly the separate design (and the
     certificate of such designs is the average-dwell one, tested above)."""
-    from synthesis.table import joint_design_gains, synthesize_label_range
+    from drake_cert.synthesis.table import joint_design_gains, synthesize_label_range
 
     t = default_design_table
     conditions = dataclasses.replace(

@@ -4,6 +4,15 @@
 import numpy as np
 import pytest
 from design_fixtures import FakeDecision, lqr_design
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.longitudinal import LongitudinalMotion
+from drake_cert.systems.plants import (
+    LinearLateralPlant,
+    NonlinearLateralPlant,
+    body_state_from_error,
+)
+from drake_cert.systems.road import Road
+from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -17,11 +26,6 @@ from pydrake.systems.primitives import (
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
-from systems.closed_loop import simulate
-from systems.longitudinal import LongitudinalMotion
-from systems.plants import LinearLateralPlant, NonlinearLateralPlant, body_state_from_error
-from systems.road import Road
-from systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
 
 CAR = load_vehicle()
 SETTINGS = load_settings()
@@ -46,8 +50,8 @@ PREVIEW = SETTINGS.controller.preview_window_s > 0  # the road preview, as simul
 
 
 def _fixed_speed_loop(controller, road, t_final, stiffness=42_000.0, mu=0.6):
-    """Nonlinear plant + switching controller at constant speed (as systems.closed_loop, with
-    its road preview when the controller has the port)."""
+    """Nonlinear plant + switching controller at constant speed (as drake_cert.systems.closed_loop,
+    with its road preview when the controller has the port)."""
     builder = DiagramBuilder()
     ctrl = builder.AddSystem(controller)
     if ctrl.HasInputPort("curvature_preview_per_m"):
@@ -96,9 +100,8 @@ def _run_reference_comparison(fast):
                                  initial_speed_mps=SPEED, fast=fast, curvature_preview=PREVIEW)
     diagram, plant, ctrl, state_log, steer_log = _fixed_speed_loop(ctrl, road, t_final)
     simulator = Simulator(diagram)
+    from drake_cert.systems.closed_loop import simulator_config
     from pydrake.systems.analysis import ApplySimulatorConfig
-
-    from systems.closed_loop import simulator_config
     ApplySimulatorConfig(simulator_config(SETTINGS, "piecewise_constant"), simulator)
     ctx = simulator.get_mutable_context()
     plant.body_state_subsystem().GetMyMutableContextFromRoot(ctx).SetContinuousState(

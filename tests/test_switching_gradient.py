@@ -10,6 +10,17 @@ longitudinal block would give them.
 
 import numpy as np
 import pytest
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import simulate, simulator_config
+from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
+from drake_cert.systems.road import Road
+from drake_cert.systems.switching_controller import (
+    GradientConstants,
+    SwitchingGradientL1Law,
+    SwitchingL1Controller,
+    SwitchingL1Law,
+    gradient_derivatives_fast,
+)
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import (
@@ -22,17 +33,6 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
-from systems import l1_law
-from systems.closed_loop import simulate, simulator_config
-from systems.plants import NonlinearLateralPlant, body_state_from_error
-from systems.road import Road
-from systems.switching_controller import (
-    GradientConstants,
-    SwitchingGradientL1Law,
-    SwitchingL1Controller,
-    SwitchingL1Law,
-    gradient_derivatives_fast,
-)
 
 CAR = load_vehicle()
 SETTINGS = load_settings()
@@ -61,8 +61,8 @@ def designs(default_design_table):
 
 def _profiles(road, speed, t_final, dt=0.002):
     """Speed, curvature and preview trajectories along ``road``; ``speed`` a number (m/s; the
-    trajectories of systems.closed_loop) or a function of time (sampled every dt; at rest the
-    preview is NaN, a mean over no distance, as the route source gives it)."""
+    trajectories of drake_cert.systems.closed_loop) or a function of time (sampled every dt; at
+    rest the preview is NaN, a mean over no distance, as the route source gives it)."""
     if not callable(speed):
         return [PiecewisePolynomial.ZeroOrderHold([0.0, 2 * t_final], [[speed, speed]]),
                 road.curvature_trajectory(speed, t_final),
@@ -313,7 +313,7 @@ def test_braking_to_rest_on_a_curve_it_holds_its_steering_and_stops_adapting(des
 def test_the_gradient_law_needs_an_implicit_integrator_fixed_step_rk2_at_1ms_diverges(designs):
     # The adaptation loop has a lightly damped mode at about sqrt(Gamma b_m' P b_m) rad/s,
     # 1.5e4 here: far outside RK2's stability region at h = T_s = 1 ms (module docstring of
-    # systems.switching_controller); Radau3 (the other closed loops here) is stable.
+    # drake_cert.systems.switching_controller); Radau3 (the other closed loops here) is stable.
     p = l1_law.l1_parameters(CAR, designs[0], SETTINGS, 14.0)
     assert np.sqrt(p.adaptation_gain * p.b_m @ p.p_ad @ p.b_m) * CTL.sample_period_s > 2.0
     road = Road.curve(radius_m=60.0, straight_m=5.0, transition_m=10.0, curve_m=40.0)

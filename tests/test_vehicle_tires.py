@@ -3,13 +3,13 @@
 import dataclasses
 
 import pytest
+from drake_cert.synthesis.design_io import DesignTable
+from drake_cert.synthesis.table import synthesize_label_range, synthesize_table
+from drake_cert.synthesis.verify import verify_design_table
 
 from drake_cert.config import default_path, load_conditions, load_settings, load_vehicle
 from drake_cert.errors import ConfigError
 from drake_cert.io import provenance
-from synthesis.design_io import DesignTable
-from synthesis.table import synthesize_label_range, synthesize_table
-from synthesis.verify import verify_design_table
 
 CONDITIONS = load_conditions()
 SETTINGS = load_settings()
@@ -72,9 +72,9 @@ def suv_carla_designs():
 def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
     """The truth under the car is the road's stiffness as the SUV's tires feel it (scaled),
     the same stiffness its designs were synthesized for; the road's friction is unchanged."""
-    from systems.driving import build_certified_driving_diagram
-    from systems.route import Route
-    from systems.scenario import load_scenario
+    from drake_cert.systems.driving import build_certified_driving_diagram
+    from drake_cert.systems.route import Route
+    from drake_cert.systems.scenario import load_scenario
 
     conditions, designs = suv_carla_designs
     scenario = load_scenario("rain_route")
@@ -91,7 +91,7 @@ def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
         assert seg.stiffness_n_per_rad == pytest.approx(scale * ref.stiffness_n_per_rad)
         assert seg.friction_mu == ref.friction_mu  # friction is the road's, not the tire's
     # and the drive says which vehicle drove
-    from systems.driving import drive
+    from drake_cert.systems.driving import drive
 
     short = dataclasses.replace(scenario, t_final_s=0.2)
     result = drive(build_certified_driving_diagram(short, vehicle=SUV, settings=SETTINGS,
@@ -102,9 +102,10 @@ def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
 def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chosen(
         suv_carla_designs):
     """A regressor estimates the reference tire's stiffness: the SUV's is scale times it."""
+    from drake_cert.systems.certified_interval import CertifiedInterval
+    from drake_cert.systems.perception_smoothing import PerceptionResult
+
     from drake_cert.errors import ConfigError
-    from systems.certified_interval import CertifiedInterval
-    from systems.perception_smoothing import PerceptionResult
 
     conditions, designs = suv_carla_designs
     scale = SUV.tire_stiffness_scale

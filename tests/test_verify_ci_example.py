@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 import yaml
+from drake_cert.synthesis.design_io import dump_design_table
+from drake_cert.synthesis.table import design_label_ranges
 
 from drake_cert import cli
 from drake_cert.config import Preset, default_path, load_conditions
-from synthesis.design_io import dump_design_table
-from synthesis.table import design_label_ranges
 
 ROOT = Path(__file__).resolve().parents[1]
 CI = ROOT / "examples" / "ci"
@@ -71,7 +71,7 @@ def example(default_design_table):
     shipped conditions with :data:`PRESET` as their one preset and the session's synthesized
     designs of its ranges, with their switching certificate (the cut table keeps it: a
     certificate covering more designs than the table holds still proves their switching)."""
-    from synthesis.design_io import with_switching_certificates
+    from drake_cert.synthesis.design_io import with_switching_certificates
 
     conditions = dataclasses.replace(load_conditions(), presets=[Preset(**PRESET)])
     ranges = design_label_ranges(conditions)

@@ -72,7 +72,7 @@ def check(args) -> None:
         load_vehicle(args.vehicle)
     from drake_cert.config import load_conditions
     from drake_cert.errors import ConfigError
-    from systems.scenario import load_scenario, scenario_path
+    from drake_cert.systems.scenario import load_scenario, scenario_path
 
     scenario = load_scenario(args.scenario)
     if args.designs is None:  # a design file may carry conditions of its own: checked later
@@ -127,13 +127,13 @@ def _setup(args) -> dict:
 
     vehicle = load_vehicle(args.vehicle) if args.vehicle else None
     if not args.designs:
-        from synthesis.table import synthesize_table
+        from drake_cert.synthesis.table import synthesize_table
 
         vehicle, conditions, settings = vehicle or load_vehicle(), load_conditions(), \
             load_settings()
         return dict(vehicle=vehicle, settings=settings, conditions=conditions,
                     designs=synthesize_table(vehicle, conditions, settings))
-    from synthesis.design_io import load_design_file
+    from drake_cert.synthesis.design_io import load_design_file
 
     table = load_design_file(args.designs)
     if vehicle is not None and vehicle != table.vehicle:
@@ -163,12 +163,12 @@ def run(args) -> int:
                           f"none (attack {first.attack.kind!r}): give --attack sa or ea with it")
     seed_source = "scenario"
     if args.seed == "none" or first.seed is None:  # one draw, shared by every pipeline
-        from systems.driving import entropy_seed
+        from drake_cert.systems.driving import entropy_seed
 
         seed, seed_source = entropy_seed(), "os-entropy"
         choices = [dict(c, seed=seed) for c in choices]
     common = _setup(args)
-    from systems.driving import (
+    from drake_cert.systems.driving import (
         check_initial_speed,
         check_look_ahead,
         check_perception_budget,
@@ -208,8 +208,8 @@ def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None, in
     """The scenario (shipped name or file) with the command line's choices applied."""
     import dataclasses
 
-    from systems.driving import with_overrides
-    from systems.scenario import load_scenario
+    from drake_cert.systems.driving import with_overrides
+    from drake_cert.systems.scenario import load_scenario
 
     loaded = load_scenario(scenario)
     if n is not None:
@@ -227,7 +227,7 @@ def _drive_with_bar(choices: dict, common: dict, position: int):
     """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
     from drake_cert.certification.sampler import retain_freed_memory
     from drake_cert.cli.progress import progress_bar
-    from systems.driving import drive_scenario
+    from drake_cert.systems.driving import drive_scenario
 
     retain_freed_memory()  # a --compare worker process runs this, not cli.main
     scenario = _scenario_for(**choices)
@@ -292,16 +292,16 @@ def _write_outputs(args, results) -> None:
     from drake_cert.io import atomic_write_bytes, atomic_write_text
 
     if args.plot:
-        from systems.drive_plot import drive_figure_png
+        from drake_cert.systems.drive_plot import drive_figure_png
 
         atomic_write_bytes(args.plot, drive_figure_png(results))
     if args.meshcat:
-        from systems.meshcat_view import record_drives
+        from drake_cert.systems.meshcat_view import record_drives
 
         meshcat = record_drives({r.summary["pipeline"]: r.tape for r in results},
                                 results[0].route, lane_width_m=results[0].lane_width_m)
         atomic_write_text(args.meshcat, meshcat.StaticHtml())
     if args.out:
-        from systems.drive_plot import tape_bytes
+        from drake_cert.systems.drive_plot import tape_bytes
 
         atomic_write_bytes(args.out, tape_bytes(results, args.out))

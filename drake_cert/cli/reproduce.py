@@ -135,7 +135,7 @@ def run(args) -> int:
     from drake_cert.experiments.reproduce import run_reproduction, tasks_for
     from drake_cert.experiments.run_store import RunStore
     from drake_cert.io import check_writable, provenance
-    from synthesis.table import synthesize_table
+    from drake_cert.synthesis.table import synthesize_table
 
     config = build_config(args)
     out = Path(args.out)

@@ -6,8 +6,8 @@ curve of the design radius placed in the episode) and print a short table (peak 
 the car left its lane, final offset); optionally write a plot of e1(t) and the steering
 (``--plot``), the tapes (``--out tape.csv|tape.npz``) and the results as JSON on stdout.
 
-An episode stops early once |e1| > ``systems.closed_loop.OFF_ROAD_M``; its peak |e1| is then
-the peak up to the stop, and ``time_left_lane_s`` says when the car left its lane.
+An episode stops early once |e1| > ``drake_cert.systems.closed_loop.OFF_ROAD_M``; its peak |e1| is
+then the peak up to the stop, and ``time_left_lane_s`` says when the car left its lane.
 """
 
 import argparse
@@ -23,11 +23,12 @@ from drake_cert.errors import ConfigError
 from drake_cert.io import atomic_write_bytes, check_writable, provenance
 
 STIFFNESS_CHOICES = ("lo", "mid", "hi", "ends")
-ROAD_CHOICES = ("curve", "s_curve", "curvature_step", "straight")  # systems.road.ROAD_KINDS
+# as drake_cert.systems.road.ROAD_KINDS
+ROAD_CHOICES = ("curve", "s_curve", "curvature_step", "straight")
 FRICTION_MAX = 2.0  # the conditions file accepts friction_mu in (0, 2]
 RADIUS_MAX_M = 10_000.0  # m: a larger radius is a straight road for the lateral loop
 DURATION_MAX_S = 3600.0  # longer episodes are a typo, not a study
-OFF_ROAD_M = 5.0  # systems.closed_loop.OFF_ROAD_M (not imported: --help stays fast)
+OFF_ROAD_M = 5.0  # drake_cert.systems.closed_loop.OFF_ROAD_M (not imported: --help stays fast)
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
@@ -142,7 +143,7 @@ def check(args) -> None:
     if args.plot:
         check_writable(args.plot, "--plot")
     if args.out:
-        from systems.tape_io import check_tape_path
+        from drake_cert.systems.tape_io import check_tape_path
 
         check_writable(check_tape_path(args.out), "--out")
 
@@ -157,9 +158,9 @@ def check_speed(speed: float, synthesis_settings) -> None:
 
 def run(args) -> int:
     from drake_cert.cli.progress import progress_bar
-    from synthesis.design_io import load_design_file
-    from systems.closed_loop import simulate
-    from systems.road import Road
+    from drake_cert.synthesis.design_io import load_design_file
+    from drake_cert.systems.closed_loop import simulate
+    from drake_cert.systems.road import Road
 
     table = load_design_file(args.designs)  # cli.main has run check(args)
     vehicle, settings = table.vehicle, table.settings
@@ -233,7 +234,7 @@ def _write_outputs(args, tapes, results, radius_m: float) -> None:
         atomic_write_bytes(args.plot, _plot_png(tapes, radius_m))
         print(f"wrote {args.plot}", file=sys.stderr)
     if args.out:
-        from systems.tape_io import tape_header, write_tapes
+        from drake_cert.systems.tape_io import tape_header, write_tapes
 
         headers = [tape_header(t, design_index=r["design_index"], labels=r["labels"],
                                road=r["road"], radius_m=r["radius_m"])

@@ -1,7 +1,7 @@
 """``drake-cert synthesize``: gains, filter gain and safe speed for every label range.
 
 Loads the vehicle, road conditions and settings (shipped defaults unless given), synthesizes
-one design per contiguous label range of each preset (``synthesis.table``) and prints a
+one design per contiguous label range of each preset (``drake_cert.synthesis.table``) and prints a
 table (or ``--json`` on stdout). ``--out FILE`` writes the design table as YAML (atomically,
 with schema version and provenance) for ``drake-cert verify`` and the simulator. Exit 0 on
 success, also when some ranges have no safe speed (they say which condition failed); 1 when
@@ -40,7 +40,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def design_record(design) -> dict:
     """JSON record of one design: every saved field plus ``stiffness_interval``."""
-    from synthesis.design_io import design_to_dict
+    from drake_cert.synthesis.design_io import design_to_dict
 
     record = design_to_dict(design)
     record["margins"] = {k: (v if math.isfinite(v) else None)  # JSON has no infinities
@@ -112,8 +112,12 @@ def run(args: argparse.Namespace) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.errors import ConfigError
     from drake_cert.io import provenance
-    from synthesis.design_io import DesignTable, save_design_table, with_switching_certificates
-    from synthesis.table import synthesize_table
+    from drake_cert.synthesis.design_io import (
+        DesignTable,
+        save_design_table,
+        with_switching_certificates,
+    )
+    from drake_cert.synthesis.table import synthesize_table
 
     if not hasattr(args, "loaded"):
         check(args)
@@ -139,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
             raise ConfigError(f"cannot write --out {args.out}: {e.strerror}") from None
         print(f"wrote {len(designs)} designs to {args.out}", file=sys.stderr)
     if args.json:
-        from synthesis.switching import certificate_to_dict
+        from drake_cert.synthesis.switching import certificate_to_dict
 
         json.dump({"schema_version": prov["schema_version"], "provenance": prov,
                    "designs": [design_record(d) for d in designs],

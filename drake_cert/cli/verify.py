@@ -1,7 +1,7 @@
 """``drake-cert verify DESIGN``: re-check a saved design or design table independently.
 
 Reloads the file ``drake-cert synthesize --out`` writes (or a single-design file), recomputes
-every condition by the separate code path of ``synthesis.verify`` and prints the margins.
+every condition by the separate code path of ``drake_cert.synthesis.verify`` and prints the margins.
 With ``--vehicle``, ``--settings``, ``--conditions`` (reference files) the file's embedded
 copies must equal them (else exit 1 naming the field) and every condition is recomputed with
 them; without them verify checks the file against its own embedded inputs and says so on
@@ -78,8 +78,12 @@ def claims_summary(designs) -> str:
 def run(args: argparse.Namespace) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
-    from synthesis.design_io import load_design_file
-    from synthesis.verify import COMPLETENESS, completeness_reference, verify_design_table
+    from drake_cert.synthesis.design_io import load_design_file
+    from drake_cert.synthesis.verify import (
+        COMPLETENESS,
+        completeness_reference,
+        verify_design_table,
+    )
 
     table = load_design_file(args.design)
     references = {

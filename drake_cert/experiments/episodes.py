@@ -13,9 +13,9 @@ import dataclasses
 
 from drake_cert import metrics
 from drake_cert.config import Settings, VehicleParams
-from synthesis.design import ControllerDesign
-from systems.closed_loop import simulate
-from systems.road import Road
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 EPISODE_S = 20.0  # simulated seconds per episode
 

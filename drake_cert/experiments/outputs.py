@@ -143,7 +143,7 @@ def traces_plot(rows: list[dict], config, designs: list | None = None) -> bytes:
 
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.experiments.episodes import EpisodeRunner
-    from synthesis.table import synthesize_table
+    from drake_cert.synthesis.table import synthesize_table
 
     vehicle, settings = load_vehicle(), load_settings()
     designs = designs if designs is not None else synthesize_table(vehicle, load_conditions(),

@@ -58,7 +58,7 @@ class FrameWorker:
     def __init__(self, config: ReproduceConfig, betas: dict | None = None,
                  designs: list | None = None, conformal: dict | None = None):
         from drake_cert.experiments.episodes import EpisodeRunner
-        from synthesis.table import synthesize_table
+        from drake_cert.synthesis.table import synthesize_table
 
         self.config = config
         self.vehicle, self.settings = load_vehicle(), load_settings()
@@ -99,7 +99,7 @@ class FrameWorker:
 
     # ------------------------------------------------------------------ one frame
     def __call__(self, task: FrameTask) -> list[dict]:
-        from systems.camera import CameraFrame
+        from drake_cert.systems.camera import CameraFrame
 
         c = self.config
         p_idx = preset_key(task.preset)
@@ -147,10 +147,10 @@ class FrameWorker:
         do by camera tick: distinct for every (preset, cell, frame). A g_conformal cell shares
         the attacker and perception blocks of its g cell (:func:`reproduce_config.noise_cell`).
         """
-        from synthesis.selection import preset_designs
-        from systems.attacker import Attacker
-        from systems.certified_interval import CertifiedInterval
-        from systems.perception_smoothing import PerceptionSmoothing
+        from drake_cert.synthesis.selection import preset_designs
+        from drake_cert.systems.attacker import Attacker
+        from drake_cert.systems.certified_interval import CertifiedInterval
+        from drake_cert.systems.perception_smoothing import PerceptionSmoothing
 
         key = (preset, cell)
         if key in self._blocks:
@@ -232,7 +232,7 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     finished so far come back (fewer than ``frames`` per preset: the tables count them).
     """
     from drake_cert.experiments.executors import LocalExecutor
-    from synthesis.table import synthesize_table
+    from drake_cert.synthesis.table import synthesize_table
 
     config.validate()
     executor = executor or LocalExecutor()
