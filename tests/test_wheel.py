@@ -6,6 +6,7 @@ environment sees this environment's third-party packages through a path file, bu
 editable finder, so every ``drake_cert`` module it imports comes from the installed wheel.
 """
 
+import shutil
 import subprocess
 import sys
 import sysconfig
@@ -20,9 +21,15 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def wheel(tmp_path_factory) -> Path:
+    # built from a copy of what the wheel holds, so that setuptools' build/ stays out of the tree
+    source = tmp_path_factory.mktemp("source")
+    shutil.copy(ROOT / "pyproject.toml", source)
+    for folder in ("drake_cert", "systems", "synthesis"):
+        shutil.copytree(ROOT / folder, source / folder,
+                        ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
     out = tmp_path_factory.mktemp("wheel")
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--quiet", "--no-deps",
-                    "--no-build-isolation", "--wheel-dir", str(out), str(ROOT)],
+                    "--no-build-isolation", "--wheel-dir", str(out), str(source)],
                    check=True, capture_output=True, timeout=300)
     (path,) = out.glob("drake_cert-*.whl")
     return path
