@@ -26,6 +26,9 @@ import sys
 import time
 
 import numpy as np
+from scipy.integrate import solve_ivp
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.systems import l1_law
 from drake_cert.systems.closed_loop import build_closed_loop, simulate
 from drake_cert.systems.plants import (
@@ -36,9 +39,6 @@ from drake_cert.systems.plants import (
     single_track_derivatives,
 )
 from drake_cert.systems.road import Road
-from scipy.integrate import solve_ivp
-
-from drake_cert.config import load_conditions, load_settings, load_vehicle
 
 BASELINE_S = 4.0  # window of the solve_ivp baselines (s)
 

@@ -24,13 +24,13 @@ import json
 import time
 
 import numpy as np
-from drake_cert.synthesis.table import synthesize_table
-from drake_cert.systems.driving import build_certified_driving_diagram, drive, with_overrides
-from drake_cert.systems.scenario import load_scenario
 
 from drake_cert.certification.backends import resolve_backend
 from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.synthesis.table import synthesize_table
+from drake_cert.systems.driving import build_certified_driving_diagram, drive, with_overrides
+from drake_cert.systems.scenario import load_scenario
 from drake_cert.threads import torch_threads
 
 

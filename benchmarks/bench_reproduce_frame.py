@@ -18,11 +18,10 @@ import argparse
 import dataclasses
 import time
 
-from drake_cert.synthesis.table import synthesize_table
-
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.experiments.reproduce import FrameWorker
 from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
+from drake_cert.synthesis.table import synthesize_table
 from drake_cert.threads import torch_threads
 
 

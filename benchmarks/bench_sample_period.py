@@ -15,10 +15,10 @@ import sys
 import time
 
 import numpy as np
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.road import Road
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 PERIODS = (2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4, 6.25e-5)
 

@@ -19,14 +19,14 @@ import time
 import numpy as np
 import scipy.integrate
 import scipy.linalg
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.synthesis import l1_norm
 from drake_cert.synthesis.conditions import filtered_plant_realisation, high_passed_plant_l1_norms
 from drake_cert.synthesis.switching import design_key, table_switching_certificates
 from drake_cert.synthesis.table import synthesize_table
 from drake_cert.synthesis.uncertainty import nominal_model
 from drake_cert.synthesis.verify import l1_norm_by_quadrature
-
-from drake_cert.config import load_conditions, load_settings, load_vehicle
 
 
 def naive_quad_l1_norm(a, b, c) -> float:

@@ -18,12 +18,12 @@ import sys
 import time
 
 import numpy as np
-from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.road import Road
 
 from drake_cert import metrics
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
+from drake_cert.synthesis.table import synthesize_design
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 BISECTIONS = 8
 STRAIGHT_M = 40.0

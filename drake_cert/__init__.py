@@ -10,8 +10,9 @@ Packages, all under ``drake_cert``: the foundation (config, errors, io, dynamics
 ``perception``, ``certification``, ``experiments``, ``cli``, and ``drake_cert.synthesis``
 (convex gain synthesis, L1 norm, safe-speed search, verification) and ``drake_cert.systems``
 (Drake LeafSystems and diagrams), whose sources sit in the repository's top-level folders
-synthesis/ and systems/. Names below are resolved on first use (PEP 562), so ``import drake_cert`` imports
-neither torch nor pydrake, and the foundation never imports the packages built on it.
+synthesis/ and systems/. Names below are resolved on first use (PEP 562), so
+``import drake_cert`` imports neither torch nor pydrake, and the foundation never imports the
+packages built on it.
 """
 
 __version__ = "0.1.0"

@@ -22,14 +22,14 @@ import dataclasses
 
 import numpy as np
 import scipy.linalg
+
+from drake_cert.config import VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
 from drake_cert.synthesis.uncertainty import (
     curvature_feedforward_gain,
     nominal_model,
     output_equivalent_row,
 )
-
-from drake_cert.config import VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
 
 
 @dataclasses.dataclass(frozen=True)

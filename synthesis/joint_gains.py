@@ -26,6 +26,9 @@ import dataclasses
 
 import cvxpy as cp
 import numpy as np
+
+from drake_cert.config import Settings, VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
 from drake_cert.synthesis.gains import (
     GRID_CHECK_TOLERANCE,
@@ -33,9 +36,6 @@ from drake_cert.synthesis.gains import (
     corner_points,
     solve_sdp,
 )
-
-from drake_cert.config import Settings, VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics
 
 JOINT = "joint"  # one LMI, common Lyapunov matrix (the default)
 SEPARATE = "separate"  # one LMI per interval, each with its own Lyapunov matrix

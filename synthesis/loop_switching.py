@@ -28,11 +28,11 @@ shifted grid with generalized eigenvalues (no solver).
 """
 
 import numpy as np
+
+from drake_cert.config import VehicleParams
 from drake_cert.synthesis.conditions import GRADIENT, reference_system_matrix
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.lyapunov_rate import certified_rate
-
-from drake_cert.config import VehicleParams
 
 LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
 LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
@@ -76,6 +76,7 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
     half the trial rate are added and the LMI solved again (at most :data:`LOOP_ROUNDS`
     times): a few hundred LMIs instead of a thousand, the same claim."""
     import cvxpy as cp
+
     from drake_cert.synthesis.gains import solve_sdp
 
     covered = [d for d in designs if d.has_safe_speed]

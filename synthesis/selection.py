@@ -9,10 +9,9 @@ block's ``_narrowest_holding`` in ``drake_cert.systems.certified_interval``.)
 
 from collections.abc import Sequence
 
-from drake_cert.synthesis.design import ControllerDesign
-
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
 
 
 def preset_designs(designs: Sequence[ControllerDesign], conditions: ConditionsTable,

@@ -61,12 +61,12 @@ import time
 
 import numpy as np
 import scipy.linalg
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import InfeasibleDesign
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 COMMON = "common"
 DWELL = "dwell"

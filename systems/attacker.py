@@ -18,13 +18,13 @@ import dataclasses
 import math
 
 import torch
-from drake_cert.systems.camera import CameraFrame
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import LeafSystem
 
 from drake_cert.certification.attacks import AttackSettings, attack
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.errors import ConfigError
+from drake_cert.systems.camera import CameraFrame
 
 KINDS = ("none", "sa", "ea", "nan", "misshaped")
 TARGETS = ("base", "smoothed")

@@ -15,7 +15,6 @@ import dataclasses
 import math
 
 import torch
-from drake_cert.systems.route import Route
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
@@ -30,6 +29,7 @@ from drake_cert.perception.frames import (
     style_for,
 )
 from drake_cert.rng import torch_generator
+from drake_cert.systems.route import Route
 
 
 @dataclasses.dataclass(frozen=True)

@@ -31,11 +31,6 @@ import dataclasses
 import math
 from collections.abc import Sequence
 
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.synthesis.design_io import DesignTable
-from drake_cert.synthesis.selection import join_design_indices
-from drake_cert.synthesis.table import friction_lower_bound
-from drake_cert.systems.perception_smoothing import PerceptionResult
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import BasicVector, EventStatus, LeafSystem
 
@@ -47,6 +42,11 @@ from drake_cert.certification.intervals import (
 )
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.design_io import DesignTable
+from drake_cert.synthesis.selection import join_design_indices
+from drake_cert.synthesis.table import friction_lower_bound
+from drake_cert.systems.perception_smoothing import PerceptionResult
 
 STATUS_CODES = {"certified": 0, "envelope": 1, "stop": 2, "base": 3}
 

@@ -16,16 +16,6 @@ state, advances and returns a :class:`Tape` (Drake tutorial style). A simulator 
 import dataclasses
 
 import numpy as np
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.systems.l1_controller import L1AdaptiveController
-from drake_cert.systems.l1_reference import L1AdaptiveControllerReference
-from drake_cert.systems.plants import (
-    ExactDiscreteLinearPlant,
-    LinearLateralPlant,
-    NonlinearLateralPlant,
-    body_state_from_error,
-)
-from drake_cert.systems.road import Road
 from pydrake.systems.analysis import (
     ApplySimulatorConfig,
     Simulator,
@@ -43,6 +33,16 @@ from pydrake.systems.primitives import (
 from drake_cert import metrics
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems.l1_controller import L1AdaptiveController
+from drake_cert.systems.l1_reference import L1AdaptiveControllerReference
+from drake_cert.systems.plants import (
+    ExactDiscreteLinearPlant,
+    LinearLateralPlant,
+    NonlinearLateralPlant,
+    body_state_from_error,
+)
+from drake_cert.systems.road import Road
 
 PLANTS = ("nonlinear", "linear", "linear_sampled")
 OFF_ROAD_M = 5.0  # |e1| (m) at which an episode stops: the car has left its lane for good

@@ -55,6 +55,17 @@ import time
 from collections.abc import Callable
 
 import numpy as np
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
+from pydrake.systems.primitives import LogVectorOutput, Saturation
+
+from drake_cert.certification.alpha_spending import AlphaSpending, planned_decisions
+from drake_cert.certification.backends import resolve_backend
+from drake_cert.certification.intervals import candidate_ranges
+from drake_cert.certification.sampler import resolve_precision
+from drake_cert.certification.seeds import Purpose, child_seed
+from drake_cert.config import ConditionsTable, Settings, VehicleParams
+from drake_cert.errors import ConfigError
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.selection import (
     design_label_spans,
@@ -78,17 +89,6 @@ from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_err
 from drake_cert.systems.route import Route, RouteSource
 from drake_cert.systems.scenario import Scenario
 from drake_cert.systems.switching_controller import SwitchingL1Controller
-from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
-from pydrake.systems.primitives import LogVectorOutput, Saturation
-
-from drake_cert.certification.alpha_spending import AlphaSpending, planned_decisions
-from drake_cert.certification.backends import resolve_backend
-from drake_cert.certification.intervals import candidate_ranges
-from drake_cert.certification.sampler import resolve_precision
-from drake_cert.certification.seeds import Purpose, child_seed
-from drake_cert.config import ConditionsTable, Settings, VehicleParams
-from drake_cert.errors import ConfigError
 
 OFF_ROAD_M = 5.0  # |e1| (m) at which a drive ends: the car has left its lane for good
 REST_LIMIT_S = 5.0  # a drive ends after the car has rested this long (a stop for good)

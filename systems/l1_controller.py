@@ -18,14 +18,14 @@ is the readable reference; the tests check that both give the same closed loop.
 
 import numpy as np
 import pydrake.symbolic as sym
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.systems import l1_law
-from drake_cert.systems.l1_law import L1Parameters
 from pydrake.systems.framework import Context, Diagram, DiagramBuilder
 from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
+from drake_cert.systems.l1_law import L1Parameters
 
 
 def _affine_matrices(expressions, variables):

@@ -72,6 +72,8 @@ import dataclasses
 
 import numpy as np
 import scipy.linalg
+
+from drake_cert.config import Settings, VehicleParams
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.uncertainty import (
     E1_SELECTOR,
@@ -83,8 +85,6 @@ from drake_cert.synthesis.uncertainty import (
     stiffness_grid,
 )
 from drake_cert.systems import generic_math as gm
-
-from drake_cert.config import Settings, VehicleParams
 
 LAWS = ("piecewise_constant", "gradient")
 

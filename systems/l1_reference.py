@@ -6,12 +6,12 @@ reference the C++-evaluated controller is tested against, and the place to read 
 """
 
 import numpy as np
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.systems import l1_law
 from pydrake.systems.framework import BasicVector, LeafSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
 
 
 class L1AdaptiveControllerReference(LeafSystem):

@@ -82,12 +82,12 @@ import math
 from collections.abc import Callable, Sequence
 
 import pydrake.symbolic as sym
-from drake_cert.systems.decision_combination import is_within, stretch_spans
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 
 from drake_cert.errors import ConfigError
+from drake_cert.systems.decision_combination import is_within, stretch_spans
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
 BRAKING_MARGIN_M = 2.0  # a command ahead is reached this far before its point (m)

@@ -32,7 +32,6 @@ import dataclasses
 import math
 
 import torch
-from drake_cert.systems.camera import CameraFrame
 from pydrake.common.value import AbstractValue
 from pydrake.systems.framework import EventStatus, LeafSystem
 from scipy.stats import norm
@@ -54,6 +53,7 @@ from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import look_plan, percentile_bound_indices
 from drake_cert.errors import CertificationError, ConfigError
+from drake_cert.systems.camera import CameraFrame
 
 MODES = ("certified", "base")
 TASKS = ("classify", "regress")

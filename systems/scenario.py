@@ -14,7 +14,6 @@ import math
 from importlib import resources
 from pathlib import Path
 
-from drake_cert.systems.route import SegmentSpec
 from pydrake.systems.analysis import SimulatorConfig
 
 from drake_cert.config import (
@@ -24,6 +23,7 @@ from drake_cert.config import (
     load_typed,
 )
 from drake_cert.errors import ConfigError
+from drake_cert.systems.route import SegmentSpec
 
 SHIPPED_SCENARIOS = ("dry_to_snow", "rain_route", "road_surface", "sunny_into_snow",
                      "weather_change_in_curve", "sunny_straight_to_snow", "curve_entry_changes")

@@ -110,14 +110,14 @@ import math
 
 import numpy as np
 import pydrake.symbolic as sym
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.systems import l1_law
-from drake_cert.systems.l1_law import L1Parameters
 from pydrake.systems.framework import BasicVector, Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Multiplexer, SymbolicVectorSystem
 
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.systems import l1_law
+from drake_cert.systems.l1_law import L1Parameters
 
 S_HAT, U_AD, DESIGN, GRID, STOPPED, HELD = slice(0, 4), 4, 5, 6, 7, 8
 STATE_SIZE = 9

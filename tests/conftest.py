@@ -11,11 +11,10 @@ def default_design_table():
     ``drake_cert.synthesis.table.design_label_ranges`` order); takes a few seconds, shared by the
     synthesis and verify tests.
     """
-    from drake_cert.synthesis.design_io import DesignTable
-    from drake_cert.synthesis.table import synthesize_table
-
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.io import provenance
+    from drake_cert.synthesis.design_io import DesignTable
+    from drake_cert.synthesis.table import synthesize_table
 
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     designs = synthesize_table(vehicle, conditions, settings)

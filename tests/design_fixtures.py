@@ -4,9 +4,9 @@ import dataclasses
 
 import numpy as np
 import scipy.linalg
-from drake_cert.synthesis.design import ControllerDesign
 
 from drake_cert.dynamics import lateral_error_dynamics
+from drake_cert.synthesis.design import ControllerDesign
 
 
 def lqr_design(vehicle, stiffness_lo, stiffness_hi, speed_mps, filter_gain=200.0,

@@ -7,10 +7,6 @@ import math
 
 import pytest
 import torch
-from drake_cert.systems.camera import CameraFrame
-from drake_cert.systems.driving import alpha_spending, certificate_failure_bound
-from drake_cert.systems.perception_smoothing import PerceptionSmoothing
-from drake_cert.systems.scenario import load_scenario
 from hypothesis import given
 from hypothesis import strategies as st
 
@@ -18,6 +14,10 @@ from drake_cert.certification.alpha_spending import AlphaSpending, planned_decis
 from drake_cert.config import load_conditions
 from drake_cert.errors import CertificationError
 from drake_cert.perception.models import load_model
+from drake_cert.systems.camera import CameraFrame
+from drake_cert.systems.driving import alpha_spending, certificate_failure_bound
+from drake_cert.systems.perception_smoothing import PerceptionSmoothing
+from drake_cert.systems.scenario import load_scenario
 
 
 @given(total=st.floats(1e-6, 0.5), planned=st.integers(1, 2000),

@@ -16,10 +16,6 @@ import numpy as np
 import pytest
 import torch
 from design_fixtures import lqr_design
-from drake_cert.synthesis.design_io import DesignTable, save_design_table
-from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.road import Road
 
 from drake_cert import cli
 from drake_cert.certification.classifier import (
@@ -39,6 +35,10 @@ from drake_cert.perception.models import (
     model_path,
     save_model,
 )
+from drake_cert.synthesis.design_io import DesignTable, save_design_table
+from drake_cert.synthesis.table import synthesize_design
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 ROOT = Path(__file__).resolve().parents[1]
 VEHICLE = load_vehicle()

@@ -4,15 +4,15 @@ stiffness and the conformal one keeps it."""
 
 import numpy as np
 import pytest
-from drake_cert.synthesis.selection import preset_designs
-from drake_cert.synthesis.table import synthesize_table
-from drake_cert.systems.certified_interval import CertifiedInterval
-from drake_cert.systems.perception_smoothing import PerceptionResult
 
 from drake_cert.certification.classifier import ClassCertificate
 from drake_cert.certification.conformal import RobustConformalCalibration
 from drake_cert.certification.statistics import clopper_pearson_bounds, safe_set_radius
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.synthesis.selection import preset_designs
+from drake_cert.synthesis.table import synthesize_table
+from drake_cert.systems.certified_interval import CertifiedInterval
+from drake_cert.systems.perception_smoothing import PerceptionResult
 
 PRESET, SIGMA, EPS = "carla-like", 0.25, 0.25
 

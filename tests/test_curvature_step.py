@@ -14,6 +14,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
+
+from drake_cert.config import load_settings, load_vehicle
 from drake_cert.synthesis.uncertainty import matched_disturbance
 from drake_cert.systems import l1_law
 from drake_cert.systems.closed_loop import (
@@ -23,9 +26,6 @@ from drake_cert.systems.closed_loop import (
     simulator_config,
 )
 from drake_cert.systems.road import Road
-from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
-
-from drake_cert.config import load_settings, load_vehicle
 
 CAR = load_vehicle()
 SETTINGS = load_settings()

@@ -6,10 +6,10 @@ import dataclasses
 import json
 
 import pytest
-from drake_cert.systems.scenario import SHIPPED_SCENARIOS, scenario_path
 
 from drake_cert.cli import main
 from drake_cert.config import load_vehicle
+from drake_cert.systems.scenario import SHIPPED_SCENARIOS, scenario_path
 
 KEYS = {"left_lane", "peak_abs_e1_m", "time_left_lane_s", "mean_speed_mps", "min_speed_mps",
         "distance_m", "simulated_s", "wall_s", "interval_covers_true_fraction",
@@ -121,9 +121,8 @@ def test_a_table_whose_envelope_has_no_safe_speed_is_refused_not_driven(designs,
                                                                          capsys):
     import dataclasses
 
-    from drake_cert.synthesis.design_io import load_design_file, save_design_table
-
     from drake_cert.config import load_conditions
+    from drake_cert.synthesis.design_io import load_design_file, save_design_table
 
     table = load_design_file(designs)
     family = tuple(load_conditions().preset("robotcar-like").labels)

@@ -15,6 +15,9 @@ import dataclasses
 
 import numpy as np
 import pytest
+
+from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
 from drake_cert.synthesis.selection import envelope_design_index, preset_designs
 from drake_cert.synthesis.table import synthesize_table
 from drake_cert.systems.driving import (
@@ -26,9 +29,6 @@ from drake_cert.systems.driving import (
 )
 from drake_cert.systems.route import SegmentSpec
 from drake_cert.systems.scenario import SHIPPED_SCENARIOS, load_scenario
-
-from drake_cert.config import load_conditions, load_settings, load_vehicle
-from drake_cert.errors import ConfigError
 
 VOLATILE = ("wall_s", "real_time_factor")
 

@@ -4,11 +4,11 @@ import dataclasses
 
 import numpy as np
 import pytest
-from drake_cert.synthesis.gains import corner_points, state_feedback_lmi, synthesize_state_feedback
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import InfeasibleDesign
+from drake_cert.synthesis.gains import corner_points, state_feedback_lmi, synthesize_state_feedback
 
 
 def _abscissa(vehicle, k_m, c, v):

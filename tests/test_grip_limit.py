@@ -1,12 +1,12 @@
 """The grip condition (DESIGN 5.3d) is tight on the Fiala plant: certified >= 90% of the limit."""
 
 import numpy as np
-from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.road import Road
 
 from drake_cert import metrics
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
+from drake_cert.synthesis.table import synthesize_design
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.road import Road
 
 CAR, SETTINGS = load_vehicle(), load_settings()
 

@@ -5,14 +5,14 @@ import dataclasses
 import numpy as np
 import pytest
 from design_fixtures import lqr_design
-from drake_cert.systems import l1_law
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.l1_controller import L1AdaptiveController
-from drake_cert.systems.road import Road
 from pydrake.systems.analysis import SimulatorConfig
 
 from drake_cert import metrics
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.l1_controller import L1AdaptiveController
+from drake_cert.systems.road import Road
 
 CAR = load_vehicle()
 SETTINGS = load_settings()

@@ -3,14 +3,14 @@
 import numpy as np
 import pytest
 import scipy.integrate
-from drake_cert.synthesis import l1_norm
-from drake_cert.synthesis.conditions import filtered_plant_realisation
-from drake_cert.synthesis.uncertainty import nominal_model
-from drake_cert.synthesis.verify import l1_norm_by_quadrature
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drake_cert.config import load_vehicle
+from drake_cert.synthesis import l1_norm
+from drake_cert.synthesis.conditions import filtered_plant_realisation
+from drake_cert.synthesis.uncertainty import nominal_model
+from drake_cert.synthesis.verify import l1_norm_by_quadrature
 
 
 @pytest.mark.parametrize("a", [0.05, 1.0, 37.0, 2.0e3])

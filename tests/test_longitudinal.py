@@ -5,13 +5,13 @@ import math
 import numpy as np
 import pytest
 from design_fixtures import FakeDecision
-from drake_cert.systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_cert.errors import ConfigError
+from drake_cert.systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
 
 A_DEC, A_ACC = 4.0, 2.0
 TOL = 1e-6  # integration roundoff on the bounds

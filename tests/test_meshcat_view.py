@@ -1,11 +1,11 @@
 """Meshcat view: the road and each car are recorded headless into one standalone page."""
 
 import numpy as np
+
+from drake_cert.config import load_conditions
 from drake_cert.systems.driving import DriveTape
 from drake_cert.systems.meshcat_view import car_poses, record_drives
 from drake_cert.systems.route import Route, SegmentSpec
-
-from drake_cert.config import load_conditions
 
 
 def tape_along(route, status: int, seconds: float = 3.0) -> DriveTape:

@@ -2,9 +2,9 @@
 
 import numpy as np
 import pytest
-from drake_cert.systems.closed_loop import Tape
 
 from drake_cert import metrics
+from drake_cert.systems.closed_loop import Tape
 
 
 def _tape(e1, steering=None, margin=0.85):

@@ -5,17 +5,17 @@ import math
 
 import pytest
 import torch
+from pydrake.systems.analysis import Simulator
+from pydrake.systems.framework import DiagramBuilder
+
+from drake_cert.config import load_conditions
+from drake_cert.perception.models import load_model
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.systems.attacker import Attacker
 from drake_cert.systems.camera import CameraSource
 from drake_cert.systems.certified_interval import STATUS_CODES, CertifiedInterval
 from drake_cert.systems.perception_smoothing import PerceptionResult, PerceptionSmoothing
 from drake_cert.systems.route import Route, SegmentSpec
-from pydrake.systems.analysis import Simulator
-from pydrake.systems.framework import DiagramBuilder
-
-from drake_cert.config import load_conditions
-from drake_cert.perception.models import load_model
 
 PRESET = "robotcar-like"
 SIGMA = 0.25

@@ -3,6 +3,12 @@
 import numpy as np
 import pytest
 import scipy.linalg
+from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
+from pydrake.systems.framework import DiagramBuilder
+from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, MatrixGain
+
+from drake_cert.config import VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.systems.plants import (
     PLANT_INPUTS,
     ExactDiscreteLinearPlant,
@@ -15,12 +21,6 @@ from drake_cert.systems.plants import (
     nonlinear_error_derivatives,
     static_tire_loads,
 )
-from pydrake.systems.analysis import ApplySimulatorConfig, Simulator, SimulatorConfig
-from pydrake.systems.framework import DiagramBuilder
-from pydrake.systems.primitives import ConstantVectorSource, LogVectorOutput, MatrixGain
-
-from drake_cert.config import VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics
 
 CAR = VehicleParams()
 K = np.array([0.3, 0.05, 1.2, 0.1])  # a stabilising state feedback at C = 50k, V = 20

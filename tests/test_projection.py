@@ -3,9 +3,10 @@
 import numpy as np
 import pydrake.symbolic as sym
 import pytest
-from drake_cert.systems.l1_law import projection_operator
 from hypothesis import given, settings
 from hypothesis import strategies as st
+
+from drake_cert.systems.l1_law import projection_operator
 
 EPS = 0.1
 

@@ -4,11 +4,11 @@ import math
 
 import numpy as np
 import pytest
-from drake_cert.systems.route import Route, RouteSource, SegmentSpec
 from pydrake.systems.framework import DiagramBuilder
 
 from drake_cert.config import load_conditions
 from drake_cert.errors import ConfigError
+from drake_cert.systems.route import Route, RouteSource, SegmentSpec
 
 PRESET = "robotcar-like"
 SPECS = [SegmentSpec(60.0, 0.0, "sunny"), SegmentSpec(80.0, 0.01, "sunny"),

@@ -4,6 +4,10 @@ import re
 
 import pytest
 import yaml
+
+from drake_cert.config import load_conditions
+from drake_cert.errors import ConfigError
+from drake_cert.perception.models import model_path
 from drake_cert.systems.route import Route
 from drake_cert.systems.scenario import (
     SHIPPED_SCENARIOS,
@@ -11,10 +15,6 @@ from drake_cert.systems.scenario import (
     scenario_path,
     scenarios_dir,
 )
-
-from drake_cert.config import load_conditions
-from drake_cert.errors import ConfigError
-from drake_cert.perception.models import model_path
 
 
 @pytest.mark.parametrize("name", SHIPPED_SCENARIOS)

@@ -198,10 +198,9 @@ def test_certify_resolves_a_selection_tie_to_the_conservative_label():
 def test_a_drive_draws_tick_k_and_segment_i_the_same_whatever_came_before():
     """The Diagram's streams are keyed by tick and segment: a camera that rendered ticks 0-4
     renders tick 5 as one that did not, and a longer route keeps its first segments' truth."""
+    from drake_cert.config import load_conditions
     from drake_cert.systems.camera import CameraSource
     from drake_cert.systems.route import Route, SegmentSpec
-
-    from drake_cert.config import load_conditions
 
     conditions = load_conditions()
     specs = [SegmentSpec(length_m=60.0, curvature_per_m=0.0, condition=c)

@@ -5,11 +5,11 @@ import json
 
 import pytest
 from design_fixtures import lqr_design
-from drake_cert.synthesis.design_io import DesignTable, save_design_table
 
 from drake_cert import cli
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.io import provenance
+from drake_cert.synthesis.design_io import DesignTable, save_design_table
 
 
 @pytest.fixture(scope="module")

@@ -14,11 +14,6 @@ import itertools
 
 import numpy as np
 import pytest
-from drake_cert.synthesis.conditions import reference_system_matrix
-from drake_cert.synthesis.switching import common_lyapunov_certificate, switching_families
-from drake_cert.systems.closed_loop import simulator_config
-from drake_cert.systems.plants import LinearLateralPlant
-from drake_cert.systems.switching_controller import SwitchingL1Controller
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import (
@@ -28,6 +23,12 @@ from pydrake.systems.primitives import (
     TrajectorySource,
 )
 from pydrake.trajectories import PiecewisePolynomial
+
+from drake_cert.synthesis.conditions import reference_system_matrix
+from drake_cert.synthesis.switching import common_lyapunov_certificate, switching_families
+from drake_cert.systems.closed_loop import simulator_config
+from drake_cert.systems.plants import LinearLateralPlant
+from drake_cert.systems.switching_controller import SwitchingL1Controller
 
 FRAME_S = 0.1  # a switch every camera frame (10 Hz)
 DURATION_S = 8.0

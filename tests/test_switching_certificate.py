@@ -22,6 +22,9 @@ import numpy as np
 import pytest
 import scipy.linalg
 import yaml
+
+from drake_cert import cli
+from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis import gains, switching
 from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
 from drake_cert.synthesis.switching import (
@@ -33,9 +36,6 @@ from drake_cert.synthesis.switching import (
     switching_families,
 )
 from drake_cert.synthesis.verify import SWITCHING, verify_design_table
-
-from drake_cert import cli
-from drake_cert.dynamics import lateral_error_dynamics
 
 STEP_S = 0.01  # switching period of the simulations (s)
 ACCEL_MPS2 = 4.0  # |dV/dt| of the simulations

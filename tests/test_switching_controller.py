@@ -4,15 +4,6 @@
 import numpy as np
 import pytest
 from design_fixtures import FakeDecision, lqr_design
-from drake_cert.systems.closed_loop import simulate
-from drake_cert.systems.longitudinal import LongitudinalMotion
-from drake_cert.systems.plants import (
-    LinearLateralPlant,
-    NonlinearLateralPlant,
-    body_state_from_error,
-)
-from drake_cert.systems.road import Road
-from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
 from pydrake.common.value import AbstractValue
 from pydrake.systems.analysis import Simulator
 from pydrake.systems.framework import DiagramBuilder, LeafSystem
@@ -26,6 +17,15 @@ from pydrake.systems.primitives import (
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
+from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.longitudinal import LongitudinalMotion
+from drake_cert.systems.plants import (
+    LinearLateralPlant,
+    NonlinearLateralPlant,
+    body_state_from_error,
+)
+from drake_cert.systems.road import Road
+from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
 
 CAR = load_vehicle()
 SETTINGS = load_settings()
@@ -100,8 +100,9 @@ def _run_reference_comparison(fast):
                                  initial_speed_mps=SPEED, fast=fast, curvature_preview=PREVIEW)
     diagram, plant, ctrl, state_log, steer_log = _fixed_speed_loop(ctrl, road, t_final)
     simulator = Simulator(diagram)
-    from drake_cert.systems.closed_loop import simulator_config
     from pydrake.systems.analysis import ApplySimulatorConfig
+
+    from drake_cert.systems.closed_loop import simulator_config
     ApplySimulatorConfig(simulator_config(SETTINGS, "piecewise_constant"), simulator)
     ctx = simulator.get_mutable_context()
     plant.body_state_subsystem().GetMyMutableContextFromRoot(ctx).SetContinuousState(

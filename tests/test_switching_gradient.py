@@ -10,17 +10,6 @@ longitudinal block would give them.
 
 import numpy as np
 import pytest
-from drake_cert.systems import l1_law
-from drake_cert.systems.closed_loop import simulate, simulator_config
-from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
-from drake_cert.systems.road import Road
-from drake_cert.systems.switching_controller import (
-    GradientConstants,
-    SwitchingGradientL1Law,
-    SwitchingL1Controller,
-    SwitchingL1Law,
-    gradient_derivatives_fast,
-)
 from pydrake.systems.analysis import ApplySimulatorConfig, Simulator
 from pydrake.systems.framework import DiagramBuilder
 from pydrake.systems.primitives import (
@@ -33,6 +22,17 @@ from pydrake.trajectories import PiecewisePolynomial
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
+from drake_cert.systems import l1_law
+from drake_cert.systems.closed_loop import simulate, simulator_config
+from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
+from drake_cert.systems.road import Road
+from drake_cert.systems.switching_controller import (
+    GradientConstants,
+    SwitchingGradientL1Law,
+    SwitchingL1Controller,
+    SwitchingL1Law,
+    gradient_derivatives_fast,
+)
 
 CAR = load_vehicle()
 SETTINGS = load_settings()

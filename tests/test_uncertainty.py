@@ -2,6 +2,9 @@
 
 import numpy as np
 import pytest
+
+from drake_cert.config import VehicleParams
+from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis.uncertainty import (
     curvature_feedforward_gain,
     matched_disturbance,
@@ -9,9 +12,6 @@ from drake_cert.synthesis.uncertainty import (
     nominal_model,
     pseudo_inverse,
 )
-
-from drake_cert.config import VehicleParams
-from drake_cert.dynamics import lateral_error_dynamics
 
 K_M = np.array([0.3, 0.05, 1.2, 0.1])
 CASES = [(22_000.0, 50_000.0, 20.0), (120_000.0, 100_000.0, 8.0), (40_000.0, 50_000.0, 5.0),

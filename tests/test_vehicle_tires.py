@@ -3,13 +3,13 @@
 import dataclasses
 
 import pytest
-from drake_cert.synthesis.design_io import DesignTable
-from drake_cert.synthesis.table import synthesize_label_range, synthesize_table
-from drake_cert.synthesis.verify import verify_design_table
 
 from drake_cert.config import default_path, load_conditions, load_settings, load_vehicle
 from drake_cert.errors import ConfigError
 from drake_cert.io import provenance
+from drake_cert.synthesis.design_io import DesignTable
+from drake_cert.synthesis.table import synthesize_label_range, synthesize_table
+from drake_cert.synthesis.verify import verify_design_table
 
 CONDITIONS = load_conditions()
 SETTINGS = load_settings()
@@ -102,10 +102,9 @@ def test_the_suv_drives_on_its_own_tires(suv_carla_designs):
 def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chosen(
         suv_carla_designs):
     """A regressor estimates the reference tire's stiffness: the SUV's is scale times it."""
+    from drake_cert.errors import ConfigError
     from drake_cert.systems.certified_interval import CertifiedInterval
     from drake_cert.systems.perception_smoothing import PerceptionResult
-
-    from drake_cert.errors import ConfigError
 
     conditions, designs = suv_carla_designs
     scale = SUV.tire_stiffness_scale

@@ -8,15 +8,15 @@ import sys
 
 import pytest
 import yaml
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
-from drake_cert.synthesis.table import design_label_ranges, synthesize_design
-from drake_cert.synthesis.verify import completeness_check, verify_design, verify_design_table
 
 from drake_cert import cli
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.errors import ConfigError
 from drake_cert.io import provenance
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
+from drake_cert.synthesis.table import design_label_ranges, synthesize_design
+from drake_cert.synthesis.verify import completeness_check, verify_design, verify_design_table
 
 
 @pytest.fixture(scope="module")

@@ -13,11 +13,11 @@ from pathlib import Path
 
 import pytest
 import yaml
-from drake_cert.synthesis.design_io import dump_design_table
-from drake_cert.synthesis.table import design_label_ranges
 
 from drake_cert import cli
 from drake_cert.config import Preset, default_path, load_conditions
+from drake_cert.synthesis.design_io import dump_design_table
+from drake_cert.synthesis.table import design_label_ranges
 
 ROOT = Path(__file__).resolve().parents[1]
 CI = ROOT / "examples" / "ci"
