@@ -15,6 +15,7 @@ turn, steering > 0 left, ``psidot_des = V * kappa``.
 import dataclasses
 import math
 import re
+import types
 import typing
 from importlib import resources
 from pathlib import Path
@@ -88,7 +89,7 @@ def _plausible(default: float, plausible: Plausible, **metadata) -> typing.Any:
 def check_plausible_fields(obj: typing.Any, prefix: str, where: str) -> None:
     """:meth:`Plausible.check` on every field of the dataclass ``obj`` that declares a range."""
     for f in dataclasses.fields(obj):
-        if "plausible" in f.metadata:
+        if "plausible" in f.metadata and getattr(obj, f.name) is not None:
             f.metadata["plausible"].check(getattr(obj, f.name), prefix + f.name, where)
 
 
@@ -122,11 +123,18 @@ def _bytes(n: float) -> str:
 
 @dataclasses.dataclass
 class VehicleParams:
-    """Single-track vehicle (Rajamani ch. 2-3). C_f = C_r = C per tire (2C per axle).
+    """Single-track vehicle (Rajamani ch. 2-3) with its tires and, optionally, its roll geometry.
+
+    Tires (docs/design.md 2.1): a front tire's cornering stiffness is ``tire_stiffness_scale``
+    times the road condition's (the conditions table's C, N/rad), a rear tire's
+    ``rear_tire_stiffness_scale`` times it (the front scale when absent); so C_f = C and
+    C_r = ``rear_stiffness_ratio`` C for the front per-tire stiffness C the designs are stated
+    in. ``cg_height_m`` and ``track_width_m`` (both or neither) give the static stability factor
+    t / (2 h) that limits the safe speed (DESIGN 5.3e).
 
     Plausible ranges (refused outside, with the likely unit mistake): mass 100-200,000 kg,
     yaw inertia 50-5,000,000 kg m^2, CG-to-axle distances 0.3-10 m, lane width 1-20 m, car
-    width 0.5-5 m, tire stiffness scale 0.1-10."""
+    width 0.5-5 m, tire stiffness scales 0.1-10, CG height 0.1-5 m, track width 0.5-5 m."""
 
     mass_kg: float = _plausible(1573.0, Plausible(  # m
         100.0, 200_000.0, "kg", "a vehicle mass", small=((1e3, "tonnes"),),
@@ -148,17 +156,55 @@ class VehicleParams:
     tire_stiffness_scale: float = _plausible(1.0, Plausible(
         0.1, 10.0, "", "a factor on the conditions table's stiffness (not a stiffness)"),
         optional=True)
+    # the rear tires' factor (dimensionless; optional: absent = tire_stiffness_scale, then
+    # that factor is the front tires' only)
+    rear_tire_stiffness_scale: float | None = _plausible(None, Plausible(
+        0.1, 10.0, "", "a factor on the conditions table's stiffness (not a stiffness)"),
+        optional=True)
+    # height of the centre of gravity above the road (m; optional, with track_width_m)
+    cg_height_m: float | None = _plausible(None, Plausible(
+        0.1, 5.0, "m", "a CG height", large=MM_OR_CM), optional=True)
+    # track width, tire centre to tire centre (m; optional, with cg_height_m; mean of the axles)
+    track_width_m: float | None = _plausible(None, Plausible(
+        0.5, 5.0, "m", "a track width", large=MM_OR_CM), optional=True)
 
     @property
     def lane_margin_m(self) -> float:
         """Largest |e1| with the car still inside its lane: (lane - car) / 2."""
         return 0.5 * (self.lane_width_m - self.car_width_m)
 
+    @property
+    def rear_stiffness_ratio(self) -> float:
+        """C_r / C_f of one tire each (dimensionless; 1 when the file gives one scale)."""
+        if self.rear_tire_stiffness_scale is None:
+            return 1.0
+        return self.rear_tire_stiffness_scale / self.tire_stiffness_scale
+
+    @property
+    def static_stability_factor(self) -> float | None:
+        """t / (2 h): the lateral acceleration in g at which a rigid vehicle tips (None when
+        the file gives no CG height and track width)."""
+        if self.cg_height_m is None or self.track_width_m is None:
+            return None
+        return self.track_width_m / (2.0 * self.cg_height_m)
+
     def validate(self, where: str = "vehicle") -> None:
         for key in ("mass_kg", "yaw_inertia_kg_m2", "lf_m", "lr_m", "steering_limit_rad",
                     "lane_width_m", "car_width_m", "tire_stiffness_scale"):
             _require_positive(getattr(self, key), key, where)
+        for key in ("rear_tire_stiffness_scale", "cg_height_m", "track_width_m"):
+            if getattr(self, key) is not None:
+                _require_positive(getattr(self, key), key, where)
         check_plausible_fields(self, "", where)
+        if (self.cg_height_m is None) != (self.track_width_m is None):
+            given, other = (("cg_height_m", "track_width_m") if self.track_width_m is None
+                            else ("track_width_m", "cg_height_m"))
+            raise ConfigError(f"{where}: {given} is given without {other}; the rollover limit "
+                              "needs both (or leave both out)")
+        if self.track_width_m is not None and self.track_width_m >= self.car_width_m:
+            raise ConfigError(f"{where}: track_width_m ({self.track_width_m}) must be less than "
+                              f"car_width_m ({self.car_width_m}): the track is measured between "
+                              "tire centres, inside the body")
         if self.steering_limit_rad >= 0.5 * math.pi:
             raise ConfigError(f"{where}: steering_limit_rad = {self.steering_limit_rad} must be "
                               f"below pi/2 = {0.5 * math.pi:.6f} rad (the plant's tan(u) is "
@@ -348,6 +394,12 @@ class SynthesisSettings:
     # C_lo (1 - z + z^2/3) at this bound
     normalised_slip_max: float = 0.6
     lateral_accel_fraction: float = 0.85  # a_y <= fraction * mu_lo * g
+    # vehicle limits (DESIGN 5.3e): a_y <= rollover_fraction * g * t / (2 h) for a vehicle
+    # that gives its CG height h and track t; a_y <= lateral_accel_limit_mps2 when given
+    rollover_fraction: float = dataclasses.field(default=0.7, metadata={"optional": True})
+    lateral_accel_limit_mps2: float | None = _plausible(None, Plausible(
+        0.5, 15.0, "m/s^2", "a lateral acceleration limit", small=((GRAVITY_MPS2, "g"),)),
+        optional=True)
     speed_grid_step_mps: float = 0.5
     stiffness_grid_points: int = 5
     w_grid_points: int = 5
@@ -361,6 +413,13 @@ class SynthesisSettings:
                 raise ConfigError(f"{where}: synthesis.{key} = {getattr(self, key)} must be "
                                   "below 1 (1 is the friction limit)")
         _require_positive(self.speed_min_mps, "synthesis.speed_min_mps", where)
+        if not (math.isfinite(self.rollover_fraction) and 0.0 < self.rollover_fraction <= 1.0):
+            raise ConfigError(f"{where}: synthesis.rollover_fraction = {self.rollover_fraction!r}"
+                              " must be in (0, 1]: the share of the rigid vehicle's rollover "
+                              "threshold t g / (2 h) a steady turn may use")
+        if self.lateral_accel_limit_mps2 is not None:
+            _require_positive(self.lateral_accel_limit_mps2, "synthesis.lateral_accel_limit_mps2",
+                              where)
         check_plausible_fields(self, "synthesis.", where)
         if self.speed_min_mps > self.speed_max_mps:
             raise ConfigError(f"{where}: synthesis.speed_min_mps ({self.speed_min_mps}) exceeds "
@@ -441,6 +500,10 @@ def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
         raise ConfigError(f"{where}: missing key {_join(path, sorted(missing)[0])!r}")
     for field in (f for f in fields if f.name in data):  # in the schema's order: deterministic
         name, hint, sub = field.name, hints[field.name], data[field.name]
+        if _optional_number(hint):
+            if sub is None:
+                continue
+            hint = float
         if dataclasses.is_dataclass(hint):
             _check_keys(hint, sub, _join(path, name), where)
         elif hint in (float, int) and (isinstance(sub, bool) or not isinstance(sub, (int, float))):
@@ -456,6 +519,12 @@ def _check_keys(schema: type, data: typing.Any, path: str, where: str) -> None:
                     raise ConfigError(f"{where}: {_join(path, name)} must be a list")
                 for i, entry in enumerate(sub):
                     _check_keys(item, entry, f"{_join(path, name)}[{i}]", where)
+
+
+def _optional_number(hint: typing.Any) -> bool:
+    """``float | None``: an optional key that is a number when given."""
+    return typing.get_origin(hint) in (typing.Union, types.UnionType) \
+        and set(typing.get_args(hint)) == {float, type(None)}
 
 
 def _join(path: str, key: str) -> str:
@@ -553,6 +622,8 @@ def build_without_drake(schema: type, data: typing.Any, path: str, where: str):
         if not isinstance(data, list):
             raise ConfigError(f"{where}: {path} must be a list")
         return [build_without_drake(item, v, f"{path}[{i}]", where) for i, v in enumerate(data)]
+    if _optional_number(schema):
+        return None if data is None else build_without_drake(float, data, path, where)
     if schema is float:
         if isinstance(data, bool) or not isinstance(data, int | float):
             raise ConfigError(f"{where}: {path} = {data!r} must be a number")

@@ -3,8 +3,10 @@
 State ``s = [e1, e1dot, e2, e2dot]`` (m, m/s, rad, rad/s): lateral offset from the lane
 centre (> 0 left) and heading error. ``sdot = A(C, V) s + b(C) u + g(C, V) psidot_des`` with
 front steering ``u`` (rad, > 0 left) and ``psidot_des = V * kappa`` (rad/s; kappa > 0 left
-turn). C_f = C_r = C is the cornering stiffness of ONE tire (N/rad); the model's factor 2
-counts the two tires of an axle. A is affine in (C, C/V); b is C times a constant vector.
+turn). C is the cornering stiffness of ONE front tire (N/rad), a rear tire's is
+``C_r = rho C`` with the vehicle's fixed ``rho = rear_stiffness_ratio`` (1 for one scale on
+both axles); the model's factor 2 counts the two tires of an axle. A is affine in (C, C/V); b
+is C times a constant vector.
 
 Every function accepts floats or numpy arrays of ``pydrake.symbolic.Expression`` for C and V,
 so the same equations build the C++-evaluated ``SymbolicVectorSystem`` plants.
@@ -16,14 +18,14 @@ from drake_cert.config import VehicleParams
 
 
 def lateral_error_dynamics(vehicle: VehicleParams, stiffness_n_per_rad, speed_mps):
-    """Return ``(A, b, g)`` of eq. 2.45 for per-tire stiffness C and speed V.
+    """Return ``(A, b, g)`` of eq. 2.45 for front per-tire stiffness C and speed V.
 
     Assumes V > 0 (the model has 1/V terms; designs use V >= 5 m/s). Shapes (4, 4), (4,), (4,).
     """
     m, iz = vehicle.mass_kg, vehicle.yaw_inertia_kg_m2
     lf, lr = vehicle.lf_m, vehicle.lr_m
     c, v = stiffness_n_per_rad, speed_mps
-    cf = cr = c
+    cf, cr = c, vehicle.rear_stiffness_ratio * c
     dtype = object if _is_symbolic(c) or _is_symbolic(v) else float
     a = np.zeros((4, 4), dtype=dtype)
     a[0, 1] = 1.0

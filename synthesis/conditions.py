@@ -16,12 +16,22 @@ d. ``grip``: the tire as it is at the slip the design admits. The Fiala tire's s
    ``[C_lo (1 - z_b + z_b^2/3), C_hi]`` (:func:`tire_stiffness_lo`), and d asks that the
    steady slip on the design curve at the least friction stays within ``z_b`` and
    ``V^2 / R <= lateral_accel_fraction * mu_lo * g`` (m/s^2).
+e. vehicle limits, each where it is given: ``rollover``, ``V^2 / R <= rollover_fraction g
+   t / (2 h)`` (the vehicle's static stability factor), and ``comfort``,
+   ``V^2 / R <= lateral_accel_limit_mps2`` (settings); m/s^2.
 """
 
 import functools
 
 import cvxpy as cp
 import numpy as np
+
+from drake_cert.config import GRAVITY_MPS2, VehicleParams
+from drake_cert.dynamics import (
+    fiala_normalised_slip_at_utilisation,
+    fiala_secant_ratio,
+    lateral_error_dynamics,
+)
 from drake_cert.synthesis.design import (
     MARGIN_KEYS as MARGIN_KEYS,  # the stored margins, re-exported
 )
@@ -38,20 +48,16 @@ from drake_cert.synthesis.uncertainty import (
     output_equivalent_row,
 )
 
-from drake_cert.config import GRAVITY_MPS2, VehicleParams
-from drake_cert.dynamics import (
-    fiala_normalised_slip_at_utilisation,
-    fiala_secant_ratio,
-    lateral_error_dynamics,
-)
-
 L1_CONDITION = "l1_condition"
 REFERENCE_STABILITY = "reference_stability"
 STEADY_STATE_OFFSET = "steady_state_offset"
 GRIP = "grip"
+ROLLOVER = "rollover"  # vehicle limits (5.3e), where the vehicle and settings give them
+COMFORT = "comfort"
 GRADIENT = "gradient"  # adaptation laws (settings.controller.adaptation_law)
 PIECEWISE_CONSTANT = "piecewise_constant"
-CONDITIONS = (L1_CONDITION, REFERENCE_STABILITY, STEADY_STATE_OFFSET, GRIP)
+CONDITIONS = (L1_CONDITION, REFERENCE_STABILITY, STEADY_STATE_OFFSET, GRIP, ROLLOVER, COMFORT)
+SPEED_RANGE = "speed_range"  # a speed limited by the top of the searched range, no condition
 
 
 def filtered_plant_realisation(nominal: NominalModel, w: float, k: float):
@@ -235,14 +241,16 @@ def steady_state_slip_angles(vehicle: VehicleParams, stiffness: float, speed_mps
 
     Steady cornering: the axle forces carry the centripetal force, ``F_f + F_r = m a_y``, and
     cancel in yaw, ``F_f l_f = F_r l_r``; so ``F_f = m a_y l_r / (l_f + l_r)`` and
-    ``F_r = m a_y l_f / (l_f + l_r)``. Each axle has two tires of stiffness C,
-    ``F = 2 C alpha``, giving ``alpha_f = m l_r a_y / (2 C (l_f + l_r))`` and
-    ``alpha_r = m l_f a_y / (2 C (l_f + l_r))`` (small angles, linear tires).
+    ``F_r = m a_y l_f / (l_f + l_r)``. Each axle has two tires, ``F_f = 2 C alpha_f`` and
+    ``F_r = 2 rho C alpha_r`` (``rho``: the vehicle's rear stiffness ratio), giving
+    ``alpha_f = m l_r a_y / (2 C (l_f + l_r))`` and ``alpha_r = m l_f a_y / (2 rho C (l_f + l_r))``
+    (small angles, linear tires).
     """
     a_y = speed_mps**2 / radius_m
     wheelbase = vehicle.lf_m + vehicle.lr_m
     alpha_f = vehicle.mass_kg * vehicle.lr_m * a_y / (2.0 * stiffness * wheelbase)
-    alpha_r = vehicle.mass_kg * vehicle.lf_m * a_y / (2.0 * stiffness * wheelbase)
+    alpha_r = vehicle.mass_kg * vehicle.lf_m * a_y / (2.0 * vehicle.rear_stiffness_ratio
+                                                      * stiffness * wheelbase)
     return alpha_f, alpha_r
 
 
@@ -293,3 +301,35 @@ def grip_speed_limit_mps(friction_mu_lo: float, radius_m: float, normalised_slip
     """
     utilisation = min(lateral_accel_fraction, 1.0 - (1.0 - min(normalised_slip_max, 1.0))**3)
     return float(np.sqrt(utilisation * friction_mu_lo * GRAVITY_MPS2 * radius_m))
+
+
+def vehicle_lateral_accel_limits(vehicle: VehicleParams, settings) -> dict[str, float]:
+    """Condition e: the steady lateral accelerations (m/s^2) the vehicle limits allow, keyed
+    ``rollover`` (``rollover_fraction g t / (2 h)``, when the vehicle gives h and t) and
+    ``comfort`` (``lateral_accel_limit_mps2``, when set); empty when neither applies."""
+    syn = settings.synthesis
+    limits = {}
+    if vehicle.static_stability_factor is not None:
+        limits[ROLLOVER] = syn.rollover_fraction * GRAVITY_MPS2 * vehicle.static_stability_factor
+    if syn.lateral_accel_limit_mps2 is not None:
+        limits[COMFORT] = float(syn.lateral_accel_limit_mps2)
+    return limits
+
+
+def vehicle_limit_margins(vehicle: VehicleParams, settings, speed_mps: float) -> dict[str, float]:
+    """Condition e as margins on the design curve: ``limit - V^2 / R`` (m/s^2) under the keys
+    ``rollover_lateral_accel_mps2`` and ``comfort_lateral_accel_mps2`` that apply."""
+    a_y = speed_mps**2 / settings.synthesis.design_radius_m
+    return {f"{name}_lateral_accel_mps2": limit - a_y
+            for name, limit in vehicle_lateral_accel_limits(vehicle, settings).items()}
+
+
+def vehicle_speed_limit_mps(vehicle: VehicleParams, settings) -> tuple[float, str]:
+    """The largest speed condition e allows on the design curve and the limit that sets it:
+    ``(sqrt(a_y R), name)``, or ``(inf, "")`` without vehicle limits."""
+    limits = vehicle_lateral_accel_limits(vehicle, settings)
+    if not limits:
+        return float("inf"), ""
+    name = min(limits, key=limits.get)
+    return float(np.sqrt(limits[name] * settings.synthesis.design_radius_m)), name
+

@@ -22,7 +22,11 @@ MARGIN_KEYS = {
                                   "curve: lane_margin_m - max_C |e1| (m)",
     "grip_normalised_slip": "normalised_slip_max - steady tire slip z at mu_lo (Fiala)",
     "grip_lateral_accel_mps2": "lateral_accel_fraction mu_lo g - V^2 / R",
+    # condition e, each only where its limit is given (VEHICLE_LIMIT_KEYS)
+    "rollover_lateral_accel_mps2": "rollover_fraction g t / (2 h) - V^2 / R",
+    "comfort_lateral_accel_mps2": "lateral_accel_limit_mps2 - V^2 / R",
 }
+VEHICLE_LIMIT_KEYS = ("rollover_lateral_accel_mps2", "comfort_lateral_accel_mps2")
 
 
 @dataclasses.dataclass
@@ -50,6 +54,11 @@ class ControllerDesign:
     # 0 means a linear tire (the certified interval is the label interval)
     tire_slip_bound: float = 0.0
     certified_law: str = "piecewise_constant"  # adaptation law conditions b and c are for
+    # what stops the speed rising: the condition that fails just above speed_mps (grip,
+    # rollover, comfort, l1_condition, reference_stability, steady_state_offset) or
+    # "speed_range" (the top of the searched range); "" with no safe speed, or in a file
+    # written before this field existed
+    speed_limited_by: str = ""
 
     @property
     def interval(self) -> tuple[float, float]:

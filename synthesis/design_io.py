@@ -32,12 +32,6 @@ import math
 from pathlib import Path
 
 import yaml
-from drake_cert.synthesis.design import MARGIN_KEYS, ControllerDesign
-from drake_cert.synthesis.switching import (
-    SwitchingCertificate,
-    certificate_from_dict,
-    certificate_to_dict,
-)
 
 from drake_cert.config import (
     ConditionsTable,
@@ -49,6 +43,12 @@ from drake_cert.config import (
 )
 from drake_cert.errors import ConfigError, DesignFormatError
 from drake_cert.io import atomic_write_text
+from drake_cert.synthesis.design import MARGIN_KEYS, ControllerDesign
+from drake_cert.synthesis.switching import (
+    SwitchingCertificate,
+    certificate_from_dict,
+    certificate_to_dict,
+)
 
 DESIGN_SCHEMA_VERSION = 3  # 2: tire_slip_bound, certified_law; Fiala grip rule.
 # 3: margin steady_state_offset_m renamed steady_state_lane_margin_m
@@ -87,6 +87,7 @@ def design_to_dict(design: ControllerDesign) -> dict:
         "margins": {str(k): float(v) for k, v in design.margins.items()},
         "tire_slip_bound": float(design.tire_slip_bound),
         "certified_law": str(design.certified_law),
+        "speed_limited_by": str(design.speed_limited_by),
     }
 
 
@@ -219,6 +220,10 @@ _FLOAT_FIELDS = ("stiffness_lo_n_per_rad", "stiffness_hi_n_per_rad",
 CERTIFIABLE_LAWS = ("piecewise_constant", "gradient")
 
 
+# design keys a file may leave out (written before they existed): their defaults apply
+OPTIONAL_DESIGN_KEYS = ("speed_limited_by",)
+
+
 def design_from_dict(data, where: str) -> ControllerDesign:
     """One design mapping -> :class:`ControllerDesign`; raises :class:`DesignFormatError`."""
     if not isinstance(data, dict):
@@ -227,7 +232,7 @@ def design_from_dict(data, where: str) -> ControllerDesign:
     unknown = sorted(set(data) - set(fields))
     if unknown:
         raise DesignFormatError(f"{where}: unknown key {unknown[0]!r}")
-    missing = [f for f in fields if f not in data]
+    missing = [f for f in fields if f not in data and f not in OPTIONAL_DESIGN_KEYS]
     if missing:
         raise DesignFormatError(f"{where}: missing key {missing[0]!r}")
     for key in _FLOAT_FIELDS:
@@ -240,8 +245,9 @@ def design_from_dict(data, where: str) -> ControllerDesign:
         raise DesignFormatError(f"{where}.k_m must be a list of 4 numbers, got {k_m!r}")
     for i, x in enumerate(k_m):
         _require_number(x, f"{where}.k_m[{i}]")
-    if not isinstance(data["failed_condition"], str):
-        raise DesignFormatError(f"{where}.failed_condition must be a string")
+    for key in ("failed_condition", "speed_limited_by"):
+        if not isinstance(data.get(key, ""), str):
+            raise DesignFormatError(f"{where}.{key} must be a string")
     margins = data["margins"]
     if not isinstance(margins, dict):
         raise DesignFormatError(f"{where}.margins must be a mapping")
@@ -280,6 +286,7 @@ def design_from_dict(data, where: str) -> ControllerDesign:
         margins={str(k): float(v) for k, v in margins.items()},
         tire_slip_bound=float(data["tire_slip_bound"]),
         certified_law=data["certified_law"],
+        speed_limited_by=data.get("speed_limited_by", ""),
     )
 
 

@@ -1,7 +1,7 @@
 """Safe-speed and filter-gain search (DESIGN 5.3; paper eq. (prog)).
 
 The design speed is the largest V in ``[V_min, V_hi]`` (V_hi: where ``k_m`` is certified) at
-which all four conditions of :mod:`drake_cert.synthesis.conditions` hold for some filter gain
+which every condition of :mod:`drake_cert.synthesis.conditions` holds for some filter gain
 ``k <= k_bar``; condition b must hold for every speed in ``[V_min, V]``.
 
 Search: the conditions are evaluated at ``k = k_bar`` on the speed grid (step
@@ -21,10 +21,10 @@ import dataclasses
 import functools
 
 import numpy as np
-from drake_cert.synthesis import conditions as cond
-from drake_cert.synthesis.gains import closed_loop_spectral_abscissa
 
 from drake_cert.config import Settings, VehicleParams
+from drake_cert.synthesis import conditions as cond
+from drake_cert.synthesis.gains import closed_loop_spectral_abscissa
 
 L1_MARGIN_MIN = 1.0e-3  # require ||G|| L <= 1 - 1e-3 (numerical slack for verification)
 OFFSET_MARGIN_MIN_M = 1.0e-3
@@ -44,6 +44,7 @@ class SpeedSearchResult:
     filter_gain: float
     failed_condition: str
     margins: dict
+    limited_by: str = ""  # ControllerDesign.speed_limited_by
 
 
 @dataclasses.dataclass
@@ -143,7 +144,7 @@ def speed_grid(settings: Settings, speed_hi_mps: float) -> np.ndarray:
 
 
 def failed_conditions(margins: dict) -> list[str]:
-    """Names of the conditions whose margins are violated, in the order a, b, c, d."""
+    """Names of the conditions whose margins are violated, in the order a, b, c, d, e."""
     failed = []
     if margins["l1_condition"] < L1_MARGIN_MIN:
         failed.append(cond.L1_CONDITION)
@@ -153,7 +154,36 @@ def failed_conditions(margins: dict) -> list[str]:
         failed.append(cond.STEADY_STATE_OFFSET)
     if min(margins["grip_normalised_slip"], margins["grip_lateral_accel_mps2"]) < 0.0:
         failed.append(cond.GRIP)
+    for name in (cond.ROLLOVER, cond.COMFORT):
+        if margins.get(f"{name}_lateral_accel_mps2", 0.0) < 0.0:
+            failed.append(name)
     return failed
+
+
+def binding_condition(margins_above: dict) -> str:
+    """The condition that stops the speed rising, from the margins just above the design
+    speed: of the lateral-acceleration limits that fail there (grip, rollover, comfort), the
+    one exceeded most; else the first failing condition; none failing: the speed range."""
+    failed = failed_conditions(margins_above)
+    accel = {cond.GRIP: margins_above["grip_lateral_accel_mps2"],
+             **{name: margins_above[f"{name}_lateral_accel_mps2"]
+                for name in (cond.ROLLOVER, cond.COMFORT)
+                if f"{name}_lateral_accel_mps2" in margins_above}}
+    limits = [name for name in failed if name in accel]
+    if cond.GRIP in limits and margins_above["grip_lateral_accel_mps2"] >= 0.0:
+        return cond.GRIP  # the slip bound, not the friction fraction, is what binds
+    if limits:
+        return min(limits, key=accel.get)
+    return failed[0] if failed else cond.SPEED_RANGE
+
+
+def sample_period_filter_gain_limit(settings: Settings, interval) -> float:
+    """Largest filter gain k with ``k w_max T_s <= 1`` (1/s): the filter's fastest time constant
+    ``1 / (k w_max)`` spans at least one sample period of the piecewise-constant law, the range
+    in which the sampled loop was measured to match its continuous analysis (DESIGN 5.3a).
+    ``w_max = C_hi / C_hat`` of the certified interval."""
+    lo, hi = interval
+    return 1.0 / ((hi / (0.5 * (lo + hi))) * settings.controller.sample_period_s)
 
 
 def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
@@ -162,10 +192,25 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
 
     ``slip_bound``: the design's normalised tire slip bound z_b (default
     ``normalised_slip_max``); the evaluator's interval must be the one widened for it.
+    The scan runs at ``k_bar = filter_gain_max``; where the L1 condition leaves no safe speed
+    there and the piecewise-constant law runs, it runs again at the sample-period limit
+    (:func:`sample_period_filter_gain_limit`) when that is higher.
     """
+    settings = evaluator.settings
+    result = _search_at(evaluator, friction_mu_lo, slip_bound, settings.synthesis.filter_gain_max)
+    limit = sample_period_filter_gain_limit(settings, evaluator.interval)
+    if (result.failed_condition == cond.L1_CONDITION and evaluator.law == cond.PIECEWISE_CONSTANT
+            and limit > settings.synthesis.filter_gain_max):
+        wider = _search_at(evaluator, friction_mu_lo, slip_bound, float(limit))
+        if wider.speed_mps > 0.0:
+            return wider
+    return result
+
+
+def _search_at(evaluator: IntervalEvaluator, friction_mu_lo: float, slip_bound: float | None,
+               k_bar: float) -> SpeedSearchResult:
     vehicle, settings = evaluator.vehicle, evaluator.settings
     syn = settings.synthesis
-    k_bar = syn.filter_gain_max
     grid = speed_grid(settings, evaluator.gain_speed_max_mps)
     decay_margin = -closed_loop_spectral_abscissa(
         vehicle, evaluator.k_m, evaluator.interval, syn.speed_min_mps,
@@ -183,6 +228,7 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
             "steady_state_lane_margin_m": evaluator.offset_margin(speed),
             "grip_normalised_slip": slip,
             "grip_lateral_accel_mps2": accel,
+            **cond.vehicle_limit_margins(vehicle, settings, speed),
         }
 
     # grid scan at k_bar; b's grid margin over [V_min, V] is the running minimum
@@ -203,10 +249,11 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
         failed = failed_conditions(scan[best]) or [cond.REFERENCE_STABILITY]
         return SpeedSearchResult(0.0, float(k_bar), failed[0], scan[best])
 
-    speed = float(grid[chosen])
+    speed, limited_by = float(grid[chosen]), cond.SPEED_RANGE
     if chosen + 1 < len(grid):
-        speed = refine_cell(evaluator, margins_at, scan, grid, chosen, k_bar)
-    return lowest_filter_gain(evaluator, margins_at, grid, speed, k_bar)
+        speed, limited_by = refine_cell(evaluator, margins_at, scan, grid, chosen, k_bar)
+    result = lowest_filter_gain(evaluator, margins_at, grid, speed, k_bar)
+    return dataclasses.replace(result, limited_by=limited_by)
 
 
 def refine_cell(evaluator: IntervalEvaluator, margins_at, scan, grid, chosen: int,
@@ -214,13 +261,18 @@ def refine_cell(evaluator: IntervalEvaluator, margins_at, scan, grid, chosen: in
     """Bisect the grid cell above ``grid[chosen]`` when what fails at its top is monotone in V.
 
     Grip (``V^2 / R``) and b (a growing speed range) are monotone; every bisection point is
-    re-checked against all four conditions. Returns the highest speed that passed (m/s).
+    re-checked against every condition. Returns the highest speed that passed (m/s) and the
+    condition that failed at the lowest speed above it (:func:`binding_condition`; a speed
+    whose margins all hold failed the certificate of b).
     """
     speed, floor = float(grid[chosen]), scan[chosen]["reference_stability_per_s"]
-    monotone = {cond.GRIP, cond.REFERENCE_STABILITY}
+    monotone = {cond.GRIP, cond.ROLLOVER, cond.COMFORT, cond.REFERENCE_STABILITY}
     top_failures = set(failed_conditions(scan[chosen + 1])) or {cond.REFERENCE_STABILITY}
+    binding = binding_condition(scan[chosen + 1])
+    if binding == cond.SPEED_RANGE:
+        binding = cond.REFERENCE_STABILITY
     if not top_failures <= monotone:
-        return speed
+        return speed, binding
     lo, hi = speed, float(grid[chosen + 1])
     for _ in range(REFINE_BISECTIONS):
         mid = 0.5 * (lo + hi)
@@ -229,7 +281,8 @@ def refine_cell(evaluator: IntervalEvaluator, margins_at, scan, grid, chosen: in
             lo = mid
         else:
             hi = mid
-    return lo
+            binding = binding_condition(m) if failed_conditions(m) else cond.REFERENCE_STABILITY
+    return lo, binding
 
 
 def lowest_filter_gain(evaluator: IntervalEvaluator, margins_at, grid, speed: float,

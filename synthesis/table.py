@@ -11,14 +11,18 @@ import math
 from collections.abc import Callable, Iterable
 
 import numpy as np
-from drake_cert.synthesis.conditions import grip_speed_limit_mps, tire_stiffness_lo
+
+from drake_cert.config import ConditionsTable, Settings, VehicleParams
+from drake_cert.errors import ConfigError, InfeasibleDesign
+from drake_cert.synthesis.conditions import (
+    grip_speed_limit_mps,
+    tire_stiffness_lo,
+    vehicle_speed_limit_mps,
+)
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.gains import synthesize_state_feedback
 from drake_cert.synthesis.joint_gains import GAIN_SYNTHESES, JOINT, common_lyapunov_gains, gain_box
 from drake_cert.synthesis.speed import IntervalEvaluator, search_speed
-
-from drake_cert.config import ConditionsTable, Settings, VehicleParams
-from drake_cert.errors import ConfigError, InfeasibleDesign
 
 GAIN_LMI = "gain_lmi"  # failed_condition when no k_m exists for the interval
 
@@ -145,9 +149,10 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
         if (best is None or not best.has_safe_speed
                 or (design.has_safe_speed and design.speed_mps > best.speed_mps)):
             best = design
-        grip_speed = grip_speed_limit_mps(friction_mu_lo, syn.design_radius_m, slip_bound,
-                                          syn.lateral_accel_fraction)
-        if design.has_safe_speed and design.speed_mps >= grip_speed - syn.speed_grid_step_mps / 16:
+        # grip and the vehicle limits cap the speed; smaller slip bounds only lower the first
+        top_speed = min(vehicle_speed_limit_mps(vehicle, settings)[0], grip_speed_limit_mps(
+            friction_mu_lo, syn.design_radius_m, slip_bound, syn.lateral_accel_fraction))
+        if design.has_safe_speed and design.speed_mps >= top_speed - syn.speed_grid_step_mps / 16:
             break
     return best
 
@@ -208,6 +213,7 @@ def _searched_design(evaluator: IntervalEvaluator, labels, label_interval, c_hat
         margins={k: float(v) for k, v in result.margins.items()},
         tire_slip_bound=float(slip_bound),
         certified_law=law,
+        speed_limited_by=result.limited_by if result.speed_mps > 0.0 else "",
     )
 
 

@@ -13,6 +13,8 @@ Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, n
 * ``steady_state_offset``: the adaptive equilibrium by eliminating ``u_ad`` (plant solve,
   then the gradient-law condition), with the feedforward from the bordered nominal
   equilibrium and ``P_ad`` from a Kronecker-product solve; dense C grid.
+* ``rollover``, ``comfort``: ``V^2 / R`` against ``rollover_fraction g t / (2 h)`` from the
+  vehicle's CG height and track, and against the settings' comfort limit, where given.
 * ``grip``: axle forces from the steady-state force and moment balance, each axle's share
   of its grip inverted through the Fiala force by bisection; the certified interval's lower
   end recomputed as the Fiala force over ``C tan a`` at the slip bound. Every condition is
@@ -44,9 +46,6 @@ from pathlib import Path
 
 import numpy as np
 import scipy.linalg
-from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.synthesis.design_io import DesignTable, load_design_file
-from drake_cert.synthesis.switching import check_table_switching
 
 from drake_cert.config import (
     GRAVITY_MPS2,
@@ -59,6 +58,9 @@ from drake_cert.config import (
 )
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import ConfigError
+from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.design_io import DesignTable, load_design_file
+from drake_cert.synthesis.switching import check_table_switching
 
 CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
                    "steady_state_offset", "grip")
@@ -96,6 +98,7 @@ class DesignVerification:
     margins: dict
     failures: list[tuple[str, str]]
     interval_n_per_rad: tuple[float, float] = (math.nan, math.nan)
+    limited_by: str = ""  # the design's stated binding limit (ControllerDesign.speed_limited_by)
 
     @property
     def ok(self) -> bool:
@@ -196,7 +199,8 @@ class VerificationReport:
             "designs": [{
                 "index": d.index, "labels": list(d.labels), "label_range": d.label_range,
                 "interval_n_per_rad": [float(x) for x in d.interval_n_per_rad],
-                "speed_mps": float(d.speed_mps), "holds": d.ok, "reasons": named(d.failures),
+                "speed_mps": float(d.speed_mps), "speed_limited_by": d.limited_by or None,
+                "holds": d.ok, "reasons": named(d.failures),
                 "margins": {k: (float(v) if math.isfinite(v) else None)
                             for k, v in d.margins.items()},
             } for d in self.designs],
@@ -434,16 +438,19 @@ def cornering_slip_angles(vehicle: VehicleParams, stiffness, speed, radius):
     """Slip angles (rad) of the linear single track in a steady turn (yaw rate V/R).
 
     Unknowns side velocity v_y and steering delta; ``alpha_f = delta - (v_y + l_f r)/V``,
-    ``alpha_r = -(v_y - l_r r)/V``, forces ``2 C alpha``; lateral balance
-    ``m V r = F_f + F_r`` and yaw balance ``l_f F_f - l_r F_r = 0``.
+    ``alpha_r = -(v_y - l_r r)/V``, forces ``2 C alpha_f`` and ``2 C_r alpha_r`` (C_r: the
+    vehicle's rear tire, ``rear_tire_stiffness_scale / tire_stiffness_scale`` times C);
+    lateral balance ``m V r = F_f + F_r`` and yaw balance ``l_f F_f - l_r F_r = 0``.
     """
     m, lf, lr = vehicle.mass_kg, vehicle.lf_m, vehicle.lr_m
     r = speed / radius
-    k2 = 2.0 * stiffness
-    # F_f = k2 (delta - (vy + lf r)/V), F_r = k2 (-(vy - lr r)/V); unknowns (vy, delta)
-    lhs = np.array([[-k2 / speed - k2 / speed, k2], [-lf * k2 / speed + lr * k2 / speed, lf * k2]])
-    rhs = np.array([m * speed * r + k2 * lf * r / speed - k2 * lr * r / speed,
-                    lf * k2 * lf * r / speed + lr * k2 * lr * r / speed])
+    kf = 2.0 * stiffness
+    rear = vehicle.rear_tire_stiffness_scale or vehicle.tire_stiffness_scale
+    kr = 2.0 * stiffness * rear / vehicle.tire_stiffness_scale
+    # F_f = kf (delta - (vy + lf r)/V), F_r = kr (-(vy - lr r)/V); unknowns (vy, delta)
+    lhs = np.array([[-(kf + kr) / speed, kf], [(-lf * kf + lr * kr) / speed, lf * kf]])
+    rhs = np.array([m * speed * r + kf * lf * r / speed - kr * lr * r / speed,
+                    lf * kf * lf * r / speed + lr * kr * lr * r / speed])
     vy, delta = np.linalg.solve(lhs, rhs)
     return delta - (vy + lf * r) / speed, -(vy - lr * r) / speed
 
@@ -490,6 +497,21 @@ def secant_stiffness_ratio(normalised_slip: float) -> float:
     return mu_fz * fiala_utilisation(normalised_slip) / (stiffness * tan_a)
 
 
+def vehicle_limit_values(vehicle, settings, speed) -> dict[str, float]:
+    """Condition e recomputed from the vehicle's fields: ``limit - V^2 / R`` (m/s^2) for the
+    rollover limit ``rollover_fraction g t / (2 h)`` (when the vehicle gives h and t) and the
+    comfort limit (when set), keyed like the stored margins."""
+    syn = settings.synthesis
+    a_y = speed**2 / syn.design_radius_m
+    out = {}
+    if vehicle.cg_height_m is not None and vehicle.track_width_m is not None:
+        tip = GRAVITY_MPS2 * vehicle.track_width_m / (2.0 * vehicle.cg_height_m)
+        out["rollover_lateral_accel_mps2"] = syn.rollover_fraction * tip - a_y
+    if syn.lateral_accel_limit_mps2 is not None:
+        out["comfort_lateral_accel_mps2"] = syn.lateral_accel_limit_mps2 - a_y
+    return out
+
+
 def grip_margin_values(vehicle, design, settings, speed) -> tuple[float, float]:
     """``(z_b - steady normalised slip, fraction mu_lo g - V^2 / R)`` on the design curve."""
     syn = settings.synthesis
@@ -520,9 +542,15 @@ def _consistency_failures(design, settings, conditions) -> list[tuple[str, str]]
     if abs(design.nominal_stiffness_n_per_rad - mid) > 1e-9 * mid:
         out.append((CONSISTENCY, f"nominal stiffness {design.nominal_stiffness_n_per_rad} is "
                                  f"not the certified interval's midpoint {mid}"))
-    if not 0.0 < design.filter_gain <= syn.filter_gain_max:
-        out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, "
-                                 f"{syn.filter_gain_max}]"))
+    # k may exceed filter_gain_max up to the sample-period limit k w_max T_s <= 1 (pc law)
+    w_max = design.certified_interval[1] / design.nominal_stiffness_n_per_rad
+    k_top = syn.filter_gain_max
+    if design.certified_law == "piecewise_constant":
+        k_top = max(k_top, 1.0 / (w_max * settings.controller.sample_period_s) * (1 + 1e-12))
+    if not 0.0 < design.filter_gain <= k_top:
+        out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, {k_top:.6g}] "
+                                 f"(filter_gain_max {syn.filter_gain_max:g}, or the sample-period "
+                                 f"limit 1 / (w_max T_s) for the piecewise-constant law)"))
     if design.speed_mps > 0.0:
         if design.failed_condition:
             out.append((CONSISTENCY, f"speed {design.speed_mps} m/s with failed condition "
@@ -572,6 +600,7 @@ def _conditions_at(vehicle, design, settings, speed):
             lambda: offset_margin_m(vehicle, design, settings, speed)),
         "grip_normalised_slip": slip,
         "grip_lateral_accel_mps2": accel,
+        **vehicle_limit_values(vehicle, settings, speed),
     }
 
 
@@ -593,7 +622,39 @@ def _condition_failures(margins, speed) -> list[tuple[str, str]]:
     if margins["grip_lateral_accel_mps2"] < -1e-12:
         out.append(("grip", "lateral acceleration exceeds the friction limit by "
                     f"{-margins['grip_lateral_accel_mps2']:.4g} m/s^2 at {speed:.4g} m/s"))
+    for name, what in (("rollover", "the rollover limit"), ("comfort", "the comfort limit")):
+        key = f"{name}_lateral_accel_mps2"
+        if margins.get(key, 0.0) < -1e-12:
+            out.append((name, f"lateral acceleration exceeds {what} by {-margins[key]:.4g} "
+                              f"m/s^2 at {speed:.4g} m/s"))
     return out
+
+
+SPEED_LIMITS = ("", "l1_condition", "reference_stability", "steady_state_offset", "grip",
+                "rollover", "comfort", "speed_range")  # ControllerDesign.speed_limited_by
+
+
+def _binding_failures(vehicle, design, settings) -> list[tuple[str, str]]:
+    """The stated binding limit is a known one; a rollover or comfort limit said to bind is
+    given and lies within one speed-grid step above the design speed."""
+    claim = design.speed_limited_by
+    if claim not in SPEED_LIMITS:
+        return [(CONSISTENCY, f"speed_limited_by = {claim!r}; known: "
+                              f"{', '.join(s for s in SPEED_LIMITS if s)}")]
+    if claim not in ("rollover", "comfort"):
+        return []
+    syn = settings.synthesis
+    room = vehicle_limit_values(vehicle, settings, design.speed_mps).get(
+        f"{claim}_lateral_accel_mps2")
+    if room is None:
+        return [(CONSISTENCY, f"speed said to be limited by {claim}, which this vehicle and "
+                              "these settings do not give")]
+    limit_speed = math.sqrt((room + design.speed_mps**2 / syn.design_radius_m)
+                            * syn.design_radius_m)
+    if limit_speed - design.speed_mps > syn.speed_grid_step_mps:
+        return [(CONSISTENCY, f"speed said to be limited by {claim}, but that limit allows "
+                              f"{limit_speed:.4g} m/s, above the design's {design.speed_mps:.4g}")]
+    return []
 
 
 def _claim_failures(stored: dict, recomputed: dict) -> list[tuple[str, str]]:
@@ -618,7 +679,7 @@ def verify_design(design: ControllerDesign, vehicle: VehicleParams, settings: Se
     if design.failed_condition == GAIN_LMI and design.speed_mps == 0.0:
         # no k_m was found: the car stops, which is always safe; nothing else is claimed
         return DesignVerification(index, list(design.labels), 0.0, margins, failures,
-                                  design.interval)
+                                  design.interval, design.speed_limited_by)
     margins["gain_decay_per_s"] = gain_decay_margin(vehicle, design, settings)
     if margins["gain_decay_per_s"] < -1e-6:
         failures.append(("gain_decay", "k_m does not give decay rate "
@@ -627,15 +688,16 @@ def verify_design(design: ControllerDesign, vehicle: VehicleParams, settings: Se
         if margins["gain_decay_per_s"] + syn.decay_rate <= 0.0:
             # A - b k_m not Hurwitz: A_m, P_ad and the equilibrium do not exist
             return DesignVerification(index, list(design.labels), design.speed_mps, margins,
-                                      failures, design.interval)
+                                      failures, design.interval, design.speed_limited_by)
     if design.speed_mps > 0.0:
         margins.update(_conditions_at(vehicle, design, settings, design.speed_mps))
         failures += _condition_failures(margins, design.speed_mps)
+        failures += _binding_failures(vehicle, design, settings)
         failures += _claim_failures(design.margins, margins)
     else:
         failures += _no_safe_speed_failures(vehicle, design, settings, margins)
     return DesignVerification(index, list(design.labels), design.speed_mps, margins, failures,
-                              design.interval)
+                              design.interval, design.speed_limited_by)
 
 
 def _no_safe_speed_failures(vehicle, design, settings, margins) -> list[tuple[str, str]]:
@@ -647,14 +709,16 @@ def _no_safe_speed_failures(vehicle, design, settings, margins) -> list[tuple[st
     ref = np.maximum.accumulate(reference_abscissas(vehicle, design, grid))
     for v, abscissa in zip(grid, ref, strict=True):
         slip, accel = grip_margin_values(vehicle, design, settings, v)
-        if min(slip, accel) < 0.0 or abscissa >= 0.0:
+        limits = vehicle_limit_values(vehicle, settings, v)
+        if min(slip, accel, *limits.values()) < 0.0 or abscissa >= 0.0:
             continue
         if _guarded(lambda v=v: offset_margin_m(vehicle, design, settings, v)) < 0.0:
             continue
         l1 = _guarded(lambda v=v: 1.0 - l1_condition_value(vehicle, design, v))
         if l1 > 0.0:
             margins.update({"l1_condition": l1, "reference_stability_per_s": -float(abscissa),
-                            "grip_normalised_slip": slip, "grip_lateral_accel_mps2": accel})
+                            "grip_normalised_slip": slip, "grip_lateral_accel_mps2": accel,
+                            **limits})
             return [(NO_SAFE_SPEED_CLAIM, f"claims no safe speed ({design.failed_condition}) "
                                           f"but every condition holds at {v:.4g} m/s")]
     return []

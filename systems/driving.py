@@ -257,9 +257,31 @@ def moving_envelope(designs: list[ControllerDesign], conditions: ConditionsTable
             f"the design table has no safe speed for the envelope of preset {preset!r} "
             f"(labels {list(table[envelope].labels)}; failed: "
             f"{table[envelope].failed_condition or 'unknown'}): the certified car would "
-            "stand still wherever it abstains; synthesize designs for this vehicle that give "
-            "the envelope a safe speed")
+            f"stand still wherever it abstains; {drivable_scenarios_note(designs, conditions)}")
     return table, envelope
+
+
+def drivable_scenarios_note(designs: list[ControllerDesign],
+                            conditions: ConditionsTable) -> str:
+    """Which shipped scenarios this table can drive (their preset's envelope has a safe speed),
+    and what to change for the others: one phrase for an error message."""
+    from drake_cert.systems.scenario import SHIPPED_SCENARIOS, load_scenario
+
+    presets = set()
+    for p in conditions.presets:
+        try:
+            table = preset_designs(designs, conditions, p.name)
+        except ConfigError:
+            continue
+        if table[envelope_design_index(table, conditions, p.name)].has_safe_speed:
+            presets.add(p.name)
+    ok = [s for s in SHIPPED_SCENARIOS if load_scenario(s).perception.preset in presets]
+    can = (f"this table can drive the shipped scenarios {', '.join(ok)}" if ok
+           else "this table can drive none of the shipped scenarios")
+    return (f"{can}; for the others give the vehicle's tires per axle if they differ "
+            "(docs/usage.md, \"Your vehicle's tires\"), or synthesize with a shorter "
+            "controller.sample_period_s, which lets the filter gain rise further "
+            "(docs/design.md 5.3a)")
 
 
 def _speeds(table: list[ControllerDesign]) -> list[float]:

@@ -21,7 +21,6 @@ discretisation of eq. 2.45 at a sample period, for fixed (C, V).
 import numpy as np
 import pydrake.symbolic as sym
 import scipy.linalg
-from drake_cert.systems import generic_math as gm
 from pydrake.systems.analysis import DiscreteTimeApproximation
 from pydrake.systems.framework import Diagram, DiagramBuilder
 from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVectorSystem
@@ -29,6 +28,7 @@ from pydrake.systems.primitives import AffineSystem, Multiplexer, SymbolicVector
 from drake_cert.config import GRAVITY_MPS2, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics, yaw_rate_command
 from drake_cert.errors import ConfigError
+from drake_cert.systems import generic_math as gm
 
 PLANT_INPUTS = ("steering_rad", "stiffness_n_per_rad", "friction_mu", "speed_mps",
                 "curvature_per_m")
@@ -109,7 +109,8 @@ def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, fri
     tan_slip_f = (q_f - tan_u) / (1.0 + q_f * tan_u)
     tan_slip_r = (vy - lr * r) / speed
     f_f = 2.0 * fiala_force_from_tan(tan_slip_f, stiffness, friction_mu, fz_f)
-    f_r = 2.0 * fiala_force_from_tan(tan_slip_r, stiffness, friction_mu, fz_r)
+    f_r = 2.0 * fiala_force_from_tan(tan_slip_r, vehicle.rear_stiffness_ratio * stiffness,
+                                     friction_mu, fz_r)
     vy_dot = (f_f * gm.cos(steering) + f_r) / m - speed * r
     r_dot = (lf * f_f * gm.cos(steering) - lr * f_r) / iz
     return np.array([

@@ -50,12 +50,14 @@ def design_record(design) -> dict:
 
 
 def format_table(designs) -> str:
-    """Readable table: labels, interval, k_m, k, speed, failed condition or smallest margin.
+    """Readable table: labels, interval, k_m, k, speed, the limit that binds it, and the failed
+    condition or the margins.
 
     Label ranges are written as ``simulate --labels`` reads them (``a+b``)."""
     from drake_cert.config import format_label_range
 
-    rows = [("labels", "interval (kN/rad)", "k_m", "k", "speed (m/s)", "failed / margins")]
+    rows = [("labels", "interval (kN/rad)", "k_m", "k", "speed (m/s)", "limited by",
+             "failed / margins")]
     for d in designs:
         if d.failed_condition:
             note = f"FAILED: {d.failed_condition}"
@@ -68,11 +70,12 @@ def format_table(designs) -> str:
             "[" + " ".join(f"{x:.3g}" for x in d.k_m) + "]",
             f"{d.filter_gain:g}",
             f"{d.speed_mps:.2f}",
+            d.speed_limited_by or "-",
             note,
         ))
-    widths = [max(len(r[i]) for r in rows) for i in range(5)]
-    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r[:5], widths, strict=True)) + "  "
-                     + r[5] for r in rows)
+    widths = [max(len(r[i]) for r in rows) for i in range(6)]
+    return "\n".join("  ".join(c.ljust(w) for c, w in zip(r[:6], widths, strict=True)) + "  "
+                     + r[6] for r in rows)
 
 
 def format_switching(certificates) -> str:

@@ -56,7 +56,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
 def _format_line(d) -> str:
     status = "ok  " if d.ok else "FAIL"
     margins = ", ".join(f"{k}={v:.4g}" for k, v in d.margins.items())
-    speed = (f"speed {d.speed_mps:.2f} m/s" if d.speed_mps > 0
+    limit = f" (limited by {d.limited_by})" if d.limited_by else ""
+    speed = (f"speed {d.speed_mps:.2f} m/s{limit}" if d.speed_mps > 0
              else "no safe speed (certified: the car stops)")
     return f"{status} [{d.index}] {'+'.join(d.labels) or '(interval)'} {speed}: {margins}"
 
