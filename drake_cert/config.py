@@ -173,6 +173,13 @@ class VehicleParams:
         """Largest |e1| with the car still inside its lane: (lane - car) / 2."""
         return 0.5 * (self.lane_width_m - self.car_width_m)
 
+    def with_defaults(self) -> "VehicleParams":
+        """The vehicle as loaded: an absent rear scale is the front scale (one scale on both
+        axles), so that a file with one scale and one giving both equal are the same vehicle."""
+        if self.rear_tire_stiffness_scale is not None:
+            return self
+        return dataclasses.replace(self, rear_tire_stiffness_scale=self.tire_stiffness_scale)
+
     @property
     def rear_stiffness_ratio(self) -> float:
         """C_r / C_f of one tire each (dimensionless; 1 when the file gives one scale)."""
@@ -606,7 +613,7 @@ def load_typed(schema: type, filename: str | Path):
         except (RuntimeError, ValueError, TypeError) as e:
             raise ConfigError(f"{where}: {str(e).splitlines()[0]}") from None
     obj.validate(where)
-    return obj
+    return obj.with_defaults() if hasattr(obj, "with_defaults") else obj
 
 
 def build_without_drake(schema: type, data: typing.Any, path: str, where: str):
@@ -650,7 +657,7 @@ def load_typed_mapping(schema: type, data: typing.Any, where: str):
     except (RuntimeError, ValueError, TypeError) as e:
         raise ConfigError(f"{where}: {str(e).splitlines()[0]}") from None
     obj.validate(where)
-    return obj
+    return obj.with_defaults() if hasattr(obj, "with_defaults") else obj
 
 
 def default_path(name: str) -> Path:

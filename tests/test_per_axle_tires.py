@@ -37,10 +37,19 @@ def test_every_shipped_vehicle_file_loads_and_one_scale_means_both_axles():
     car = load_vehicle()
     assert car.rear_stiffness_ratio == 1.0 and car.static_stability_factor is None
     suv = load_vehicle(default_path("vehicles/suv.yaml"))  # one scale: both axles
-    assert suv.rear_tire_stiffness_scale is None and suv.rear_stiffness_ratio == 1.0
+    assert suv.rear_tire_stiffness_scale == suv.tire_stiffness_scale == 1.3
+    assert suv.rear_stiffness_ratio == 1.0
+
     for name in PUBLISHED:
         v = load_vehicle(default_path(f"vehicles/{name}.yaml"))
         assert v.rear_tire_stiffness_scale is not None and v.rear_stiffness_ratio != 1.0
+
+
+def test_a_vehicle_file_with_one_scale_is_the_vehicle_with_both_scales_equal(tmp_path):
+    one = tmp_path / "one_scale.yaml"
+    one.write_text("\n".join(line for line in default_path("vehicle.yaml").read_text()
+                             .splitlines() if not line.startswith("rear_tire_stiffness_scale")))
+    assert load_vehicle(one) == load_vehicle()
 
 
 def test_the_design_model_takes_the_rear_tires_stiffness_from_the_rear_scale():
