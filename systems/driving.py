@@ -485,6 +485,32 @@ def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sig
                            seed=child_seed(scenario.seed, Purpose.QUANTIZATION_CALIBRATION))
 
 
+@dataclasses.dataclass
+class _DriveParts:
+    """What the builder's steps share: the checked scenario and the objects built from it."""
+
+    scenario: Scenario
+    vehicle: VehicleParams
+    settings: Settings
+    tires: ConditionsTable  # the conditions table as this vehicle's tires feel it
+    table: list[ControllerDesign]  # the preset's designs
+    envelope: int  # index of the preset's envelope design in ``table``
+    route: Route
+    model: object  # the torch model (the attacker's gradients)
+    evaluated: object  # what perception evaluates (torch or ONNX Runtime)
+    sigma: float
+    labels: list[str]
+    period_s: float  # camera period
+    initial_speed_mps: float
+    regression_beta: float
+    conformal: object
+    seed_source: str
+
+    @property
+    def certified(self) -> bool:
+        return self.scenario.perception.pipeline == "certified"
+
+
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
                                     settings: Settings, conditions: ConditionsTable,
                                     designs: list[ControllerDesign],
@@ -497,8 +523,32 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     ``designs``: a synthesized design table (every contiguous label range of the scenario's
     preset must be in it). The certified pipeline runs the smoothed model at
     ``perception.sigma``; the base pipeline runs the model at ``perception.base_sigma``
-    (0: the plain f) and is attacked by PGD on that model.
+    (0: the plain f) and is attacked by PGD on that model. Ports and timing: DESIGN 6.1.
     """
+    parts = _prepare_drive(scenario, vehicle, settings, conditions, designs,
+                           calibration_progress)
+    b = DiagramBuilder()
+    # added in the order motion, perception, control: the order their events were always in
+    systems_ = {**_add_motion(b, parts), **_add_perception(b, parts), **_add_control(b, parts)}
+    _connect(b, systems_, preview=settings.controller.preview_window_s > 0)
+    loggers, tick_loggers = _add_loggers(b, systems_, tape_period_s, parts.period_s)
+    diagram = b.Build()
+    diagram.set_name(f"certified_driving_{parts.scenario.perception.pipeline}")
+    switching = preset_switching_certificate(vehicle, parts.table, settings,
+                                             parts.scenario.perception.preset)
+    return DrivingDiagram(diagram, parts.scenario, parts.route, parts.table, systems_, loggers,
+                          tick_loggers, parts.initial_speed_mps, vehicle, parts.seed_source,
+                          switching=switching, lead_in_m=float(scenario.camera.look_ahead_m),
+                          guarantee={**guarantee_summary(parts.scenario, parts.table,
+                                                         parts.conformal),
+                                     "warnings": _calibration_warnings(parts.scenario,
+                                                                       parts.regression_beta)})
+
+
+def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Settings,
+                   conditions: ConditionsTable, designs: list[ControllerDesign],
+                   calibration_progress: Callable | None) -> _DriveParts:
+    """Check the scenario against the table, build the route and load and calibrate the model."""
     from drake_cert.certification.sampler import with_precision
     from drake_cert.perception.models import load_model
 
@@ -506,12 +556,13 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     seed_source = "scenario"
     if scenario.seed is None:  # deployment: fresh noise, recorded so the drive can be replayed
         scenario, seed_source = dataclasses.replace(scenario, seed=entropy_seed()), "os-entropy"
-    p, cam, att = scenario.perception, scenario.camera, scenario.attack
+    p = scenario.perception
     certified = p.pipeline == "certified"
     # The road's stiffness as this vehicle's tires feel it: the conditions table's intervals
-    # times vehicle.tire_stiffness_scale (the designs were synthesized on these). The truth
-    # under the car, the labels' hulls and the designs' intervals use it; the perception
-    # models (trained on the table's reference stiffness) and their calibration keep the table.
+    # times vehicle.tire_stiffness_scale (the front tires; the designs were synthesized on
+    # these). The truth under the car, the labels' hulls and the designs' intervals use it;
+    # the perception models (trained on the table's reference stiffness) and their calibration
+    # keep the table.
     tires = conditions.with_stiffness_scale(vehicle.tire_stiffness_scale)
     table, envelope = moving_envelope(designs, tires, p.preset)
     check_route_is_seen(scenario, table)
@@ -525,68 +576,95 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     # model's gradients and judged by the int8 model's outputs).
     model = with_precision(load_model(p.preset, p.task, sigma), p.precision)
     evaluated = _evaluated_model(model, scenario, conditions, sigma)
-    labels = list(conditions.preset(p.preset).labels)
-    period = 1.0 / cam.rate_hz
-    v0 = scenario.motion.initial_speed_mps or float(table[envelope].speed_mps)
     beta = _regression_beta(evaluated, scenario, conditions) \
         if certified and p.task == "regress" else math.inf
     conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress,
                                        cache=seed_source == "scenario") \
         if certified and p.task == "classify" and p.interval == "conformal" else None
+    return _DriveParts(
+        scenario=scenario, vehicle=vehicle, settings=settings, tires=tires, table=table,
+        envelope=envelope, route=route, model=model, evaluated=evaluated, sigma=sigma,
+        labels=list(conditions.preset(p.preset).labels), period_s=1.0 / scenario.camera.rate_hz,
+        initial_speed_mps=scenario.motion.initial_speed_mps or float(table[envelope].speed_mps),
+        regression_beta=beta, conformal=conformal, seed_source=seed_source)
 
-    b = DiagramBuilder()
+
+def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
+    """Camera, attacker, perception smoothing and certified interval (DESIGN 6.1)."""
+    scenario, tires, table = parts.scenario, parts.tires, parts.table
+    p, cam, att = scenario.perception, scenario.camera, scenario.attack
     add = b.AddNamedSystem
-    motion = add("longitudinal_motion", LongitudinalMotion(
-        max_decel_mps2=scenario.motion.max_decel_mps2,
-        max_accel_mps2=scenario.motion.max_accel_mps2, initial_speed_mps=v0,
-        initial_design_index=envelope, stop_speed_mps=scenario.motion.stop_speed_mps,
-        rate_hz=cam.rate_hz, offset_s=0.75 * period,
-        join=join_design_indices(table, tires, p.preset), design_speeds_mps=_speeds(table),
-        frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
-        # the certified pipeline combines its certified decisions over the shortest stretch of
-        # one condition; the base pipeline's raw predictions each stand alone (the baseline)
-        spans=design_label_spans(table, tires, p.preset) if certified else None,
-        window_m=scenario.min_condition_length_m if certified else 0.0,
-        tolerance=scenario.tolerated_wrong_frames,
-        envelope_index=envelope,
-        initial_arc_length_m=-cam.look_ahead_m))
-    ctl = settings.controller
-    preview = ctl.preview_window_s > 0
-    road = add("route", RouteSource(route, preview_ahead_s=ctl.preview_ahead_s,
-                                    preview_window_s=ctl.preview_window_s))
-    camera = add("camera", CameraSource(route, tires, p.preset, rate_hz=cam.rate_hz,
+    camera = add("camera", CameraSource(parts.route, tires, p.preset, rate_hz=cam.rate_hz,
                                         look_ahead_m=cam.look_ahead_m,
                                         frame_size=cam.frame_size, seed=scenario.seed,
                                         frames_dir=cam.frames_dir or None))
     attacker = add("attacker", Attacker(
-        att.kind, eps=att.eps, target="smoothed" if certified else "base", model=model,
-        sigma=sigma, task=p.task, seed=scenario.seed, steps=att.steps,
+        att.kind, eps=att.eps, target="smoothed" if parts.certified else "base",
+        model=parts.model, sigma=parts.sigma, task=p.task, seed=scenario.seed, steps=att.steps,
         noise_draws=att.noise_draws, frame_size=cam.frame_size))
     perception = add("perception_smoothing", PerceptionSmoothing(
-        evaluated, mode=p.pipeline, task=p.task, sigma=sigma,
+        parts.evaluated, mode=p.pipeline, task=p.task, sigma=parts.sigma,
         n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
-        offset_s=0.25 * period, seed=scenario.seed, label_names=labels, eps=p.eps,
-        frame_size=cam.frame_size, decision=p.resolved_decision,
-        ranges=candidate_ranges(tires, p.preset, labels),
-        alpha_spending=alpha_spending(scenario, table), conformal=conformal))
+        offset_s=0.25 * parts.period_s, seed=scenario.seed, label_names=parts.labels,
+        eps=p.eps, frame_size=cam.frame_size, decision=p.resolved_decision,
+        ranges=candidate_ranges(tires, p.preset, parts.labels),
+        alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal))
     interval = add("certified_interval", CertifiedInterval(
         table, tires, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
-        regression_beta=beta, conformal=conformal,
-        stiffness_scale=vehicle.tire_stiffness_scale,
+        regression_beta=parts.regression_beta, conformal=parts.conformal,
+        stiffness_scale=parts.vehicle.tire_stiffness_scale,
         dwell_time_s=scenario.controller.dwell_time_s,
-        rate_hz=cam.rate_hz, offset_s=0.5 * period, label_names=labels))
-    controller = add("switching_l1_controller", SwitchingL1Controller(
-        vehicle=vehicle, designs=table, settings=settings, initial_design_index=envelope,
-        initial_speed_mps=v0, curvature_preview=preview, law=scenario.controller.law))
-    limit = vehicle.steering_limit_rad
-    saturation = add("steering_saturation", Saturation([-limit], [limit]))
-    plant = add("plant", NonlinearLateralPlant(vehicle,
-                                               stop_speed_mps=scenario.motion.stop_speed_mps))
+        rate_hz=cam.rate_hz, offset_s=0.5 * parts.period_s, label_names=parts.labels))
+    return dict(camera=camera, attacker=attacker, perception=perception, interval=interval)
 
+
+def _add_motion(b: DiagramBuilder, parts: _DriveParts) -> dict:
+    """Longitudinal motion and the route's road (DESIGN 6.1, 6.3)."""
+    scenario, table, tires = parts.scenario, parts.table, parts.tires
+    p, cam, ctl = scenario.perception, scenario.camera, parts.settings.controller
+    add = b.AddNamedSystem
+    motion = add("longitudinal_motion", LongitudinalMotion(
+        max_decel_mps2=scenario.motion.max_decel_mps2,
+        max_accel_mps2=scenario.motion.max_accel_mps2,
+        initial_speed_mps=parts.initial_speed_mps, initial_design_index=parts.envelope,
+        stop_speed_mps=scenario.motion.stop_speed_mps, rate_hz=cam.rate_hz,
+        offset_s=0.75 * parts.period_s, join=join_design_indices(table, tires, p.preset),
+        design_speeds_mps=_speeds(table),
+        frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
+        # the certified pipeline combines its certified decisions over the shortest stretch of
+        # one condition; the base pipeline's raw predictions each stand alone (the baseline)
+        spans=design_label_spans(table, tires, p.preset) if parts.certified else None,
+        window_m=scenario.min_condition_length_m if parts.certified else 0.0,
+        tolerance=scenario.tolerated_wrong_frames,
+        envelope_index=parts.envelope,
+        initial_arc_length_m=-cam.look_ahead_m))
+    road = add("route", RouteSource(parts.route, preview_ahead_s=ctl.preview_ahead_s,
+                                    preview_window_s=ctl.preview_window_s))
+    return dict(motion=motion, route=road)
+
+
+def _add_control(b: DiagramBuilder, parts: _DriveParts) -> dict:
+    """The switching L1 controller, the steering Saturation and the Fiala plant (DESIGN 6.1)."""
+    scenario, ctl, add = parts.scenario, parts.settings.controller, b.AddNamedSystem
+    controller = add("switching_l1_controller", SwitchingL1Controller(
+        vehicle=parts.vehicle, designs=parts.table, settings=parts.settings,
+        initial_design_index=parts.envelope, initial_speed_mps=parts.initial_speed_mps,
+        curvature_preview=ctl.preview_window_s > 0, law=scenario.controller.law))
+    limit = parts.vehicle.steering_limit_rad
+    saturation = add("steering_saturation", Saturation([-limit], [limit]))
+    plant = add("plant", NonlinearLateralPlant(parts.vehicle,
+                                               stop_speed_mps=scenario.motion.stop_speed_mps))
+    return dict(controller=controller, saturation=saturation, plant=plant)
+
+
+def _connect(b: DiagramBuilder, s: dict, preview: bool) -> None:
+    """The Diagram's wiring (DESIGN 6.1), in one fixed order."""
+    motion, road, camera, plant = s["motion"], s["route"], s["camera"], s["plant"]
+    controller, interval, perception = s["controller"], s["interval"], s["perception"]
     b.Connect(motion.GetOutputPort("arc_length_m"), road.GetInputPort("arc_length_m"))
     b.Connect(motion.GetOutputPort("arc_length_m"), camera.GetInputPort("arc_length_m"))
-    b.Connect(camera.GetOutputPort("frame"), attacker.GetInputPort("frame"))
-    b.Connect(attacker.GetOutputPort("frame"), perception.GetInputPort("frame"))
+    b.Connect(camera.GetOutputPort("frame"), s["attacker"].GetInputPort("frame"))
+    b.Connect(s["attacker"].GetOutputPort("frame"), perception.GetInputPort("frame"))
     b.Connect(perception.GetOutputPort("perception"), interval.GetInputPort("perception"))
     b.Connect(interval.GetOutputPort("decision"), motion.GetInputPort("decision"))
     b.Connect(plant.GetOutputPort("state"), controller.GetInputPort("state"))
@@ -597,23 +675,28 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
                   controller.GetInputPort("curvature_preview_per_m"))
     b.Connect(motion.GetOutputPort("speed_mps"), controller.GetInputPort("speed_mps"))
     b.Connect(motion.GetOutputPort("design_index"), controller.GetInputPort("design_index"))
-    b.Connect(controller.GetOutputPort("steering_rad"), saturation.get_input_port())
-    b.Connect(saturation.get_output_port(), plant.GetInputPort("steering_rad"))
+    b.Connect(controller.GetOutputPort("steering_rad"), s["saturation"].get_input_port())
+    b.Connect(s["saturation"].get_output_port(), plant.GetInputPort("steering_rad"))
     for port in ("stiffness_n_per_rad", "friction_mu", "curvature_per_m"):
         b.Connect(road.GetOutputPort(port), plant.GetInputPort(port))
     b.Connect(motion.GetOutputPort("speed_mps"), plant.GetInputPort("speed_mps"))
 
+
+def _add_loggers(b: DiagramBuilder, s: dict, tape_period_s: float,
+                 period_s: float) -> tuple[dict, dict]:
+    """The tape's loggers (every ``tape_period_s``) and the camera-period loggers."""
     def log(port, every=tape_period_s):
         return LogVectorOutput(port, b, every)
 
+    motion, road, interval = s["motion"], s["route"], s["interval"]
     loggers = {
-        "state": log(plant.GetOutputPort("state")),
-        "steering": log(saturation.get_output_port()),
+        "state": log(s["plant"].GetOutputPort("state")),
+        "steering": log(s["saturation"].get_output_port()),
         "speed": log(motion.GetOutputPort("speed_mps")),
         "arc_length": log(motion.GetOutputPort("arc_length_m")),
         "curvature": log(road.GetOutputPort("curvature_per_m")),
         "true_stiffness": log(road.GetOutputPort("stiffness_n_per_rad")),
-        "design": log(controller.GetOutputPort("active_design_index")),
+        "design": log(s["controller"].GetOutputPort("active_design_index")),
         "interval": log(interval.GetOutputPort("interval_n_per_rad")),
         "speed_command": log(interval.GetOutputPort("speed_command_mps")),
         "radius": log(interval.GetOutputPort("certified_radius")),
@@ -622,24 +705,14 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     # Camera-period logs publish at t_k, before that tick's updates: each sample holds the
     # decision of tick k-1 and the truth of the frame it came from.
     tick_loggers = {
-        "interval": log(interval.GetOutputPort("interval_n_per_rad"), period),
-        "seen_stiffness": log(camera.GetOutputPort("seen_stiffness_n_per_rad"), period),
-        "status": log(interval.GetOutputPort("status"), period),
-        "design": log(interval.GetOutputPort("design_index"), period),
-        "samples": log(perception.GetOutputPort("samples"), period),
-        "requested": log(interval.GetOutputPort("requested_design_index"), period),
+        "interval": log(interval.GetOutputPort("interval_n_per_rad"), period_s),
+        "seen_stiffness": log(s["camera"].GetOutputPort("seen_stiffness_n_per_rad"), period_s),
+        "status": log(interval.GetOutputPort("status"), period_s),
+        "design": log(interval.GetOutputPort("design_index"), period_s),
+        "samples": log(s["perception"].GetOutputPort("samples"), period_s),
+        "requested": log(interval.GetOutputPort("requested_design_index"), period_s),
     }
-    diagram = b.Build()
-    diagram.set_name(f"certified_driving_{p.pipeline}")
-    systems_ = dict(motion=motion, route=road, camera=camera, attacker=attacker,
-                    perception=perception, interval=interval, controller=controller,
-                    saturation=saturation, plant=plant)
-    switching = preset_switching_certificate(vehicle, table, settings, p.preset)
-    return DrivingDiagram(diagram, scenario, route, table, systems_, loggers, tick_loggers,
-                          v0, vehicle, seed_source, switching=switching,
-                          lead_in_m=float(cam.look_ahead_m),
-                          guarantee={**guarantee_summary(scenario, table, conformal),
-                                     "warnings": _calibration_warnings(scenario, beta)})
+    return loggers, tick_loggers
 
 
 _CERTIFICATES: dict[str, object] = {}  # memo of preset_switching_certificate, by value

@@ -136,3 +136,14 @@ def test_a_scenario_whose_envelope_cannot_move_is_refused_naming_the_scenarios_t
     assert "rain_route" in message and "road_surface" in message  # carla-like, rtk-like
     assert "dry_to_snow" not in message.split("can drive")[1].split(";")[0]
     assert "sample_period_s" in message
+
+
+def test_synthesize_says_which_ranges_stop_and_what_to_change(van_sunny):
+    from drake_cert.cli.synthesize import no_safe_speed_note
+
+    stopped = dataclasses.replace(van_sunny, labels=["sunny", "rain", "snow"], speed_mps=0.0,
+                                  failed_condition="l1_condition", speed_limited_by="")
+    note = no_safe_speed_note([stopped])
+    assert note.startswith("1 label range has no safe speed, the car stops there: "
+                           "sunny+rain+snow (l1_condition)")
+    assert "per axle" in note and "sample_period_s" in note

@@ -98,6 +98,22 @@ def binding_condition(designs) -> str:
     return max(dict.fromkeys(failed), key=failed.count) if failed else "none"
 
 
+def no_safe_speed_note(stopped) -> str:
+    """What to change when some label ranges have no safe speed (the car stops there)."""
+    from drake_cert.config import format_label_range
+
+    names = ", ".join(f"{format_label_range(d.labels)} ({d.failed_condition})" for d in stopped)
+    hint = {"l1_condition": "the L1 condition fails up to the filter gain the sample period "
+                            "allows: give the vehicle's tires per axle if they differ "
+                            "(docs/usage.md), or a shorter controller.sample_period_s "
+                            "(docs/design.md 5.3a)",
+            "grip": "the tires cannot hold the design curve at any speed: check the "
+                    "conditions' friction and synthesis.normalised_slip_max",
+            }.get(binding_condition(stopped), "see docs/design.md 5.3 for the failing condition")
+    return (f"{len(stopped)} label range{'s have' if len(stopped) > 1 else ' has'} no safe "
+            f"speed, the car stops there: {names}; {hint}")
+
+
 def check(args: argparse.Namespace) -> None:
     """``--out`` writable and the three files loaded and checked (``cli.main`` runs this
     before cvxpy and pydrake's systems are imported); keeps them as ``args.loaded``."""
@@ -139,6 +155,9 @@ def run(args: argparse.Namespace) -> int:
     prov = provenance(seed=None)  # deterministic: no seed
     table = with_switching_certificates(DesignTable(designs, vehicle, settings, prov, conditions))
     print(format_switching(table.switching), file=sys.stderr)
+    stopped = [d for d in designs if not d.has_safe_speed]
+    if stopped:
+        print(no_safe_speed_note(stopped), file=sys.stderr)
     if args.out:
         try:
             save_design_table(args.out, table)
