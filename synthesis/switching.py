@@ -1,56 +1,31 @@
 """Switching certificate: one Lyapunov argument for switching among controller designs.
 
-At run time the driving Diagram switches between designs of one preset (the contiguous label
-ranges of its labels, ``drake_cert.systems.certified_interval.designs_for_preset``): the state
-feedback ``u = -k_i s`` of the design in force changes at a switch. Each design's ``k_i`` is
-certified alone by the corner LMI of :mod:`drake_cert.synthesis.gains` (its own Lyapunov matrix) on
-its box ``B_i = [C_lo, C_hi] x [speed_min, gain_speed_max]``, with ``[C_lo, C_hi]`` the design's
-:attr:`~drake_cert.synthesis.design.ControllerDesign.certified_interval` (the label interval widened
-down to the Fiala secant stiffness at the design's slip bound: where the true stiffness lies
-while the design is in force, if perception is right). This module certifies the switched
-*reference (state-feedback) loops*
+Certifies the switched *reference (state-feedback) loops* of one preset's designs
+(``drake_cert.systems.certified_interval.designs_for_preset``),
 
     s' = (A(C(t), V(t)) - b(C(t)) k_sigma(t)) s,      (C(t), V(t)) in B_sigma(t),
 
-state ``s = [e1, e1dot, e2, e2dot]`` (m, m/s, rad, rad/s), decay rates in 1/s, times in s.
+with s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s), decay rates in 1/s, times in s, and
+``B_i = [C_lo, C_hi] x [speed_min, gain_speed_max]`` the box of design i, ``[C_lo, C_hi]`` its
+:attr:`~drake_cert.synthesis.design.ControllerDesign.certified_interval` (tire-widened, where
+the true stiffness lies while the design is in force if perception is right). C and V may vary
+in time inside the box of the design in force.
 
-``method = "common"``: one matrix ``P`` (normalised: smallest eigenvalue 1; units such that
-``s' P s`` is a weighted squared state) with, at every corner (C, V) of every covered
-design's box,
+``method = "common"``: one matrix ``P`` (smallest eigenvalue 1) with
+``(A - b k_i)' P + P (A - b k_i) + 2 lambda P <= 0`` (lambda = ``decay_rate_per_s``) at the four
+corners of every covered box; the corners suffice exactly, since the left side is affine in
+``(C, C/V)``. Stability at rate lambda under switching at any rate: ``dwell_time_s = 0``.
+``method = "dwell"`` (no common P): one ``P_m`` per mode (designs sharing gain, certified
+interval and gain speed range) at a common rate ``lambda_0``, with ``P_m <= mu P_n``;
+exponentially stable for switching with average dwell above
+``dwell_time_s = ln(mu) / (2 lambda_0)`` (Hespanha and Morse). The argument for both, and the
+measured rates: DESIGN 5.6 (a) and (c).
 
-    (A - b k_i)' P + P (A - b k_i) + 2 lambda P <= 0        (lambda = decay_rate_per_s).
-
-``A(C, V) - b(C) k_i`` is affine in ``(C, C/V)`` (``drake_cert.dynamics.affine_parts``); for a
-fixed P the left side is therefore affine in ``(C, C/V)``, and the image of a box in that plane
-is the convex hull of its four corners' images, so the four corners of each box suffice
-*exactly* (no grid). Then ``V(s) = s' P s`` satisfies ``dV/dt <= -2 lambda V`` pointwise in time
-whatever design is in force, so the loops are exponentially stable at rate lambda
-(``|s(t)| <= sqrt(cond P) e^(-lambda t) |s(0)|``) under switching at any rate, and with C and V
-varying in time (measurably) inside the box of the design in force; ``dwell_time_s = 0``.
-
-``method = "dwell"`` (no common P at any lambda > 0): one matrix ``P_m`` per *mode* (designs
-with the same ``k_m``, certified interval and gain speed range have the same corner matrices
-and share it), each satisfying the inequality above on its own boxes at a common rate
-``lambda_0``, and ``mu = max_{m != n} lambda_max(P_n^-1 P_m) >= 1`` (so ``P_m <= mu P_n``). The
-matrices are found jointly (for fixed lambda_0 and mu the constraints are LMIs; mu by
-bisection, lambda_0 from a short list), which gives a much smaller mu than independent P_m.
-The classical average-dwell-time argument (Hespanha and Morse, 1999): between switches
-``V_sigma`` falls by ``e^(-2 lambda_0 t)``, at a switch it grows at most by mu, so if the number
-of switches in any interval ``(t, T)`` is at most ``N_0 + (T - t) / tau_a`` with
-``tau_a > dwell_time_s = ln(mu) / (2 lambda_0)``, then
-``V(T) <= mu^N_0 e^(-(2 lambda_0 - ln(mu) / tau_a)(T - t)) V(t)``: exponential stability at the
-state rate ``lambda_0 - ln(mu) / (2 tau_a)``. C and V may vary in time inside each box here too.
-
-Both methods are about the state-feedback loops. The L1 loops with their filter state get a
-matrix of their own (:mod:`drake_cert.synthesis.loop_switching`, stored in the same certificate);
-see ``systems/switching_controller.py`` for how the adaptive state is handed over at a switch, and
-docs/design.md 5.6 for what the two cover and what they leave out (the piecewise-constant
-estimate's one-period lag; the L1-norm condition is checked per design at frozen speeds). With
-jointly synthesized gains (:mod:`drake_cert.synthesis.joint_gains`, the default) "common" is found
-by construction.
-
-The solve uses cvxpy + Clarabel (:func:`drake_cert.synthesis.gains.solve_sdp`); the claim stored is
-what the returned matrices prove, recomputed from them by generalized eigenvalues, and
+The L1 loops with their filter state get a matrix of their own, stored in the same
+certificate (:mod:`drake_cert.synthesis.loop_switching`, DESIGN 5.6 (b)). With jointly
+synthesized gains (:mod:`drake_cert.synthesis.joint_gains`, the default) "common" exists.
+The solve uses cvxpy + Clarabel (:func:`drake_cert.synthesis.gains.solve_sdp`); the stored
+claim is what the returned matrices prove (generalized eigenvalues), and
 :func:`check_switching_certificate` rechecks it without any solver.
 """
 

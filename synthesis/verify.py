@@ -1,43 +1,32 @@
 """Independent re-check of saved designs (DESIGN 5.5): ``drake-cert verify FILE``.
 
 Nothing here calls the synthesis code paths (no LMI, no eigen-residue L1 norm, no
-``adaptive_steady_state``); every claim is recomputed another way:
+``adaptive_steady_state``); each claim is recomputed another way (failures named by condition):
 
-* ``gain_decay``: eigenvalues of ``A(C, V) - b(C) k_m`` on a dense (C, V) grid over
-  ``[C_lo, C_hi] x [V_min, gain_speed_max]``: ``max Re <= -alpha``.
-* ``l1_condition``: ``||G_w||_L1`` by quadrature of the impulse response, computed by exact
-  matrix-exponential steps on a graded time grid (trapezoid rule), with a Lyapunov bound
-  on the tail; dense grids over w and C.
-* ``reference_stability``: eigenvalues of the reference system on a dense grid of
-  ``[C_lo, C_hi] x [V_min, V]``.
-* ``steady_state_offset``: the adaptive equilibrium by eliminating ``u_ad`` (plant solve,
-  then the gradient-law condition), with the feedforward from the bordered nominal
-  equilibrium and ``P_ad`` from a Kronecker-product solve; dense C grid.
-* ``rollover``, ``comfort``: ``V^2 / R`` against ``rollover_fraction g t / (2 h)`` from the
-  vehicle's CG height and track, and against the settings' comfort limit, where given.
-* ``grip``: axle forces from the steady-state force and moment balance, each axle's share
-  of its grip inverted through the Fiala force by bisection; the certified interval's lower
-  end recomputed as the Fiala force over ``C tan a`` at the slip bound. Every condition is
-  checked on that certified (tire-widened) interval.
-* ``switching`` (table level): the stored switching certificates
-  (``drake_cert.synthesis.switching``) rechecked by generalized eigenvalues of the stored Lyapunov
-  matrices at every corner of every covered design's box (no solver), and that they cover every
-  design with a safe speed of every preset. A table without certificates (written before they
-  existed) passes with a note in ``report.notes``, or fails with ``require_switching=True``.
-* consistency: ``speed <= gain_speed_max``, ``0 < k <= k_bar``, ``C_hat`` the midpoint, and
-  (when the file holds the conditions) interval = hull and mu_lo = least friction of the labels;
-  stored margins may not overstate the recomputed ones.
-* ``completeness`` (table level, :func:`completeness_check`): the table holds exactly one
-  design for every label range the conditions define. A label range is a run of consecutive
-  labels of one preset in its friction order (grippiest first), single labels and the whole
-  family included (``ConditionsTable.contiguous_ranges``), the same label tuple counted once
-  across presets: the set ``drake_cert.synthesis.table.design_label_ranges`` synthesizes and the
-  run time selects from (a certified range, the join and the meet of two ranges are such runs). A
-  design covers a range when its ``labels`` equal it in that order. Checked against the
-  reference conditions when given (by default then) or, on request, the embedded ones.
+* ``gain_decay``: ``max Re eig(A(C, V) - b(C) k_m) <= -alpha`` on a dense grid of
+  ``[C_lo, C_hi] x [V_min, gain_speed_max]``.
+* ``l1_condition``: ``||G_w||_L1`` by quadrature of the impulse response (exact
+  matrix-exponential steps on a graded grid, Lyapunov tail bound); dense grids over w and C.
+* ``reference_stability``: eigenvalues of the reference system on a dense (C, V) grid.
+* ``steady_state_offset``: the adaptive equilibrium by eliminating ``u_ad``, ``P_ad`` by a
+  Kronecker-product solve; dense C grid.
+* ``grip``, ``rollover``, ``comfort``: axle shares of grip inverted through the Fiala force by
+  bisection, and the certified interval's lower end recomputed at the slip bound; ``V^2 / R``
+  against ``rollover_fraction g t / (2 h)`` and the comfort limit, where given.
+* ``switching`` (table): the stored certificates by generalized eigenvalues at every corner of
+  every covered box (no solver), covering every design with a safe speed of every preset; a
+  table without them passes with a note in ``report.notes``, or fails with
+  ``require_switching=True``.
+* consistency: the certified law and slip bound, ``speed <= gain_speed_max``, ``0 < k <= k_bar``
+  (or the sample-period limit, DESIGN 5.3a), ``C_hat`` the midpoint, interval = hull and mu_lo =
+  least friction of the labels (when the file holds the conditions); stored margins may not
+  overstate the recomputed ones.
+* ``completeness`` (table, :func:`completeness_check`): exactly one design per label range of
+  ``ConditionsTable.contiguous_ranges``, a design covering a range when its ``labels`` equal it
+  in friction order; against the reference conditions when given, else on request.
 
-A design claiming no safe speed holds when, with its filter gain, some condition fails at
-every speed of the synthesis speed grid. Failures are named by condition.
+Every condition is checked on the certified (tire-widened) interval. A no-safe-speed claim
+holds when some condition fails at every speed of the synthesis speed grid.
 """
 
 import dataclasses

@@ -21,17 +21,9 @@ gets the hull of every non-empty ``M_E`` over the sets E of at most ``tolerance`
 envelope when all are empty (more than ``tolerance`` looks are wrong: the frames contradict
 each other beyond what the rule tolerates).
 
-Claim: if at most ``tolerance`` of the looks used are wrong, the condition at every point of
-the stretch lies in its span. Proof: a pair (a, b) less than ``window_m`` apart holds at most
-one condition boundary, so every point between a and b has the condition of a or of b; if both
-are right, the hull of their spans holds it. Let W be the set of wrong looks (|W| <=
-tolerance): every pair avoiding W holds the condition of the point, so ``M_W`` does, is
-non-empty, and is part of the hull.
-
-Monotone: when a new look arrives to the right (the newest frame), a stretch's span can only
-narrow or stay: the sets E without the new look keep their pairs and gain more (their M_E
-narrow), and ``M_E`` for an E holding the new look equals the old ``M_{E minus it}``, already
-in the old hull. The one exception is the envelope of a detected contradiction.
+Guarantee: if at most ``tolerance`` of the looks used are wrong, the condition at every point
+of the stretch lies in its span; as newer looks arrive a stretch's span only narrows or stays,
+except for the envelope of a detected contradiction. Proofs: DESIGN 6.3.
 """
 
 from __future__ import annotations

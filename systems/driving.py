@@ -8,43 +8,25 @@
     longitudinal --speed, design in force--> switching L1 controller --> Saturation --> plant
     plant (Fiala) <-- true C, mu, curvature (route), speed (longitudinal); state --> controller
 
-The controller receives the curvature under the car and, with
-``settings.controller.preview_window_s > 0`` (default), the road preview: the route's mean
-curvature over the distance the car covers in the preview window at its current speed
-(``RouteSource`` output ``curvature_preview_per_m``, input ``speed_mps``), at which the
-curvature feedforward is taken (:mod:`drake_cert.systems.l1_law`, "Road preview").
+The controller gets the curvature under the car and, with
+``settings.controller.preview_window_s > 0`` (default), the road preview (``RouteSource``
+output ``curvature_preview_per_m``, fed ``speed_mps``) at which u_ff is taken (DESIGN 4.2).
+Timing per camera tick k (period T): frame at kT, perception at kT + T/4, interval decision at
+kT + T/2, speed/design profile update at kT + 3T/4 (DESIGN 6.1). The perception latency T/4 is
+a requirement on the hardware (``n0 + n`` noisy samples within T/4, reported as
+``samples_per_s_required``), not a measurement of the machine that simulates.
 
-Timing per camera tick k (period T, t_k = k T): the camera takes a frame at t_k, perception
-certifies it at t_k + T/4, the interval block decides at t_k + T/2 (perception latency T/2),
-the longitudinal block takes the decision into its speed/design profile at t_k + 3T/4. The
-modelled latency T/4 of perception is a requirement on the hardware, not a measurement: it
-must draw ``n0 + n`` noisy samples in T/4 (the drive reports ``samples_per_s_required``; the
-wall-clock figures of a drive on a shared CPU are not that hardware).
-
-Where a decision applies (``drake_cert.systems.longitudinal``): the car starts ``look_ahead_m``
-before the route (a lead-in of the first segment's road, under the envelope design), so the first
-frame shows the route's start; every decision speaks for its look point. The certified pipeline
-combines its decisions: two look points closer than ``min_condition_length_m`` (no interior
-stretch of one condition on the route is shorter; checked before driving) have at most one
-boundary between them, so the hull of their certified label ranges holds on all the road
-between them, and each stretch gets the intersection of those hulls over the pairs around it
-(an abstention between two certified frames costs nothing; certificates that contradict each
-other give the envelope). The base pipeline's raw predictions each stand alone (the join of
-neighbours over the unseen gap between two frames). The car always keeps able to brake to
-the slowest command before the last look point (the frontier); ``check_look_ahead`` refuses a
-camera whose look-ahead cannot carry the table's top speed that way.
-
-Switching: the controller switches where the design in force changes along the road; a wider
-(safer) design is never held back. ``drake_cert.synthesis.switching`` certifies the switched
-reference loops of the preset's designs (a common Lyapunov matrix, as the jointly synthesized gains
-have, or an average dwell time with per-design matrices) and the L1 reference loops with the
-filter state (``drake_cert.synthesis.loop_switching``); each drive reports the certificate
-(``switching_method``, ``loop_switching_decay_per_s``), whether its switching signal met it
+Where decisions apply (lead-in of ``look_ahead_m``, combined decisions, the frontier) is
+:mod:`drake_cert.systems.longitudinal` (DESIGN 6.3-6.4); ``check_look_ahead`` refuses a camera
+whose look-ahead cannot carry the table's top speed, and a route with an interior stretch
+shorter than ``min_condition_length_m`` is refused. A wider (safer) design is never held back.
+Each drive reports the switching certificates (DESIGN 5.6: ``switching_method``,
+``loop_switching_decay_per_s``), whether its switching signal met them
 (``switching_certificate_met``) and the chatter bound (``chatter_bound_n0``,
-``lyapunov_growth_bound``).
-
-The non-robust baseline is the same Diagram with ``pipeline="base"``: the raw prediction of
-the base model f, the predicted label's own interval and design, attacked by PGD on f.
+``lyapunov_growth_bound``). The non-robust baseline is the same Diagram with
+``pipeline="base"``: the base model f's raw prediction, the predicted label's own interval and
+design, attacked by PGD on f, each prediction standing alone (joined over the gap between
+frames).
 """
 
 from __future__ import annotations

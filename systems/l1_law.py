@@ -9,63 +9,24 @@ C++-evaluated systems of :mod:`drake_cert.systems.l1_controller`. Symbols follow
   s_hat' = A_m s_hat + b_m (w_hat u_ad + theta_hat' s + sigma_hat + u_ff) + g_hat psidot_des
   eta    = w_hat u_ad + theta_hat' s + sigma_hat,     u_ad = -k D(s) (eta - k_g r), D = 1/s, r = 0
 
-Curvature changes: the measured ``e2dot = r - V kappa`` jumps by ``-V dkappa`` when kappa
-steps (the yaw rate r cannot), while eq. 2.45 has no such term. Both laws therefore keep
-their predictor in the coordinates ``q = s + V kappa e4 = [e1, e1dot, e2, r]``, which do not
-jump, and compare ``s_hat = q_hat - V kappa e4`` with the measurement, kappa the current
-curvature (:func:`predicted_measurement`; ``L1Parameters.measured_curvature_gain`` = V, or 0
-for the linear plants, whose eq. 2.45 state e2dot does not jump). Without it the prediction
-error jumps by ``V dkappa`` (0.38 rad/s at V = 19, R = 50), the piecewise-constant estimate
-by that over T_s, and on the Fiala plant the steering saturated at 0.5 rad for 0.2-3 s
-after a step from straight to R = 50 m (steady 0.07 rad). At constant kappa the laws are unchanged.
-
-Road preview (``controller.preview_ahead_s``, ``preview_window_s``; defaults 0.4 s, 0.4 s):
-u_ff is taken at the mean curvature kappa_p of the road the car covers in the next 0.4 s
-(:meth:`drake_cert.systems.road.Road.preview_curvature_trajectory`); the predictor is driven by that
-same u_ff and by ``g_hat V kappa`` at the curvature under the car. Without it a step from
-straight to R = 50 m asks the front tire, already at 85% of mu g on the arc, for the yaw
-moment of a step in yaw rate: the steering peaked at 1.4-7.6x its steady value (saturated at
-0.5 rad for snow) and the asphalt design at C_lo left its lane (0.899 m vs 0.85 m); with it,
-1.02-1.27x and at most 0.44 m. Why the certificate still covers the law that runs:
-- u_ff is a known input, in the command and in the predictor alike, so the prediction
-  error and the adaptation see only the uncertainty; the disturbance they must cancel keeps
-  its form ``sigma = (w - 1) u_ff + b_m^+ (g - g_hat) V kappa`` with u_ff at kappa_p, and
-  ``|kappa_p| <= max |kappa|`` (a mean), so the gradient law's set bounds the two terms
-  separately (:func:`l1_parameters`, ``curvature_preview``); the piecewise-constant law
-  uses no bound. A curvature step becomes a ramp of u_ff over the window, so sigma's rate
-  is bounded by ``|w - 1| |k_ff| V dkappa / window`` (without the preview it is impulsive,
-  which the transient bounds of the L1 theory exclude, and the gradient law then stiffened
-  at its projection boundary: 220 s wall for a 20 s step run, 4 s with the preview).
-- Conditions a and b of DESIGN 5.3 involve only (A_m, b_m, theta, w, k), not the road;
-  conditions c and d are steady states on an arc of constant curvature, where the window
-  lies on the arc and kappa_p = kappa: the equilibrium synthesis and verify compute is that
-  of the law that runs. No condition changes. Transients (a clothoid, a step) are, as
-  before, not certified but measured on the Fiala plant; the preview moves the turn-in
-  up to 0.4 s ahead of the step (peak offset on a step at most 0.44 m, all single-label
-  designs at C_lo, mid, C_hi; ``benchmarks/grip_limits.py`` for the other roads).
-
 Two adaptation laws: the continuous gradient law with Gamma and the projection operator
-(:func:`gradient_law`), and the piecewise-constant law sampled at T_s
-(:func:`piecewise_constant_update`), whose 4-vector estimate covers matched and unmatched
-directions; the filter receives its input-channel equivalent at DC
-(:func:`compensated_estimate`), which keeps the steady-state e1 at zero for any stiffness.
+(:func:`gradient_law`; stiff: integrate it implicitly, DESIGN 4.4), and the piecewise-constant
+law sampled at T_s (:func:`piecewise_constant_update`), whose 4-vector estimate reaches the
+filter through its input-channel equivalent at DC (:func:`compensated_estimate`, DESIGN 4.5).
 
-Projection bound (``controller.min_radius_m``, default 25 m = half the design radius): the
-gradient law's set for sigma is taken at curvature ``1 / min_radius_m``, twice the largest
-curvature a design admits (conditions c and d are stated at ``design_radius_m``). A larger
-set still contains the true sigma, so the L1 argument is unchanged (no synthesis condition
-uses this bound; only the transient bound of the prediction error grows with the set's
-radius). Measured with the preview, Fiala plant, C_lo, 20 s: on a step to R = 50 m and on a
-40 m curve within grip the estimate peaks at 0.32-0.76 of the bound at R = 50 m (sunny,
-heavy rain, snow), never on it. On a 40 m curve at a 50 m design's certified speed (more
-than mu g: the car slides out) the estimate sits on a bound at R = 50 m while the tire
-saturates, and Radau3 took 88 000 steps for the first 4.2 s (snow); with the margin of 2 the
-run ends off the road after 9.5 s in 1 200 steps.
+Curvature changes (DESIGN 4.3): both predictors run in the jump-free coordinates
+``q = s + V kappa e4 = [e1, e1dot, e2, r]`` and compare ``s_hat = q_hat - V kappa e4`` with the
+measurement, kappa the curvature under the car (:func:`predicted_measurement`;
+``L1Parameters.measured_curvature_gain`` = V, or 0 for the linear plants).
 
-Numerics: along the gradient law the projection keeps each estimate in its set only in
-continuous time; at the set's boundary its restoring rate grows like Gamma |y| f, so
-explicit fixed-step integration diverges there (seen with RK2 at 5 us); the simulator uses
-an implicit, error-controlled integrator (``drake_cert.systems.closed_loop.simulator_config``).
+Road preview (DESIGN 4.2; ``controller.preview_ahead_s``, ``preview_window_s``, 0.4 s each by
+default): u_ff, in command and predictor, is taken at the mean curvature kappa_p of the road
+covered in the window ahead (:meth:`drake_cert.systems.road.Road.preview_curvature_trajectory`),
+``g_hat V kappa`` at the curvature under the car; :func:`l1_parameters` with
+``curvature_preview=True`` bounds sigma's two terms separately. No synthesis condition changes.
+
+Projection bound (DESIGN 4.4): the gradient law's sigma set is taken at curvature
+``1 / controller.min_radius_m`` (25 m, half the design radius); no synthesis condition uses it.
 """
 
 import dataclasses

@@ -1,80 +1,32 @@
 """Longitudinal motion: the car's speed follows the certified speed command (DESIGN 6.3-6.4).
 
-Input port:
-  ``decision``             abstract; any object with ``position_m`` (the look point from which
-                           it applies, m of arc length), ``speed_command_mps`` (0 = stop),
-                           ``design_index``, ``time_s`` and optionally ``look_m`` (the look
-                           point of the frame behind it; default ``position_m``)
-                           (``drake_cert.systems.certified_interval.Decision``)
-Continuous state:         ``[x, v]``: arc length along the route (m) and forward speed (m/s)
-                           (in a C++ ``SymbolicVectorSystem``, as deviations from the initial
-                           values; ``speed_planner`` computes dv/dt in Python)
-Abstract state:           the speed/design profile along the route, entries
-                           ``(position_m, speed_command_mps, design_index)`` sorted by position,
-                           the first one at -inf (the initial command), and the time of the
-                           last decision taken in
-Output ports (size 1):
-  ``arc_length_m``         x (m)
-  ``speed_mps``            max(v, 0) (m/s): never negative
-  ``design_index``         the design of the latest profile entry with position <= x
-  ``speed_reference_mps``  v_ref(x) below (m/s)
+Input ``decision`` (abstract; e.g. ``drake_cert.systems.certified_interval.Decision``): any
+object with ``position_m`` (look point it applies from, m of arc length), ``speed_command_mps``
+(0 = stop), ``design_index``, ``time_s`` and optionally ``look_m`` (default ``position_m``).
+Continuous state ``[x, v]`` (m, m/s; a C++ ``SymbolicVectorSystem`` of deviations from the
+initial values, dv/dt from ``speed_planner``). Abstract state: the profile, entries
+``(position_m, speed_command_mps, design_index)`` by position, the first at -inf, and the time
+of the last decision. Outputs (size 1): ``arc_length_m`` x (m), ``speed_mps`` max(v, 0),
+``design_index`` (latest entry at or before x), ``speed_reference_mps`` v_ref(x) (m/s).
 
-Profile (a periodic unrestricted update at the camera rate, offset 3T/4 by default): entries
-the car has passed are dropped except the one in force, an entry equal to its predecessor in
-(command, design) is not added, and a command below ``stop_speed_mps`` is 0. With a join table
-only (each decision on its own), the road between the previous decision's look point q and
-this one's p, which no frame showed, gets from q on the join of the two designs (the design
-of the hull of their label ranges: it holds the stiffness wherever in (q, p) a boundary lies,
-given stretches of one condition longer than that gap), and a decision at position p
-supersedes the entries at positions >= p (e.g. a dwell-released design that applies from the
-look point of the tick that first asked for it).
+Profile update (periodic, camera rate, offset 3T/4 by default): passed entries are dropped but
+the one in force, an entry equal to its predecessor is not added, a command below
+``stop_speed_mps`` is 0. Each decision on its own (a join table only): the road from the
+previous look point q to this one gets the join of the two designs, and a decision at p
+supersedes the entries at positions >= p. Decisions combined (``spans`` and ``window_m`` > 0,
+as the driving Diagram builds it): the stretches within the window behind a new look get the
+span of :func:`drake_cert.systems.decision_combination.tolerant_span`, sound while at most
+``tolerance`` of the frames used are wrong; past the newest look: the envelope (tolerance 0:
+the newest decision's design).
 
-Decisions combined (``spans`` and ``window_m`` > 0, as the driving Diagram builds it): every
-decision is a statement "the condition at its look point lies in the design's label range"
-(the envelope's: anywhere), kept as it came (``looks``). Two look points closer than the
-window (the scenario's ``min_condition_length_m``, which no interior stretch of one road
-condition on the route is as short as, checked before driving) have at most one condition
-boundary between them, so if both frames are right the hull of their ranges holds between
-them. The road between consecutive look points runs under the range of
-:func:`drake_cert.systems.decision_combination.tolerant_span`: the hull, over every set of at most
-``tolerance`` frames left out, of the intersection of the hulls of the pairs that avoid them;
-it holds the condition there whenever at most ``tolerance`` of the frames it uses are wrong
-(DESIGN 6.3). A new decision recomputes the stretches within the window behind it; their
-ranges only narrow (of two designs that both hold, the faster is kept), except to the envelope
-when the frames contradict each other beyond the tolerance. The road from the newest look
-point on gets the envelope (with tolerance 0: the newest decision's design), and a stretch is
-narrowed once ``tolerance`` + 1 frames on each side bound it. A point's design then rests on
-the frames used; the drive's ``guarantee_failure_bound`` bounds the chance that more than
-``tolerance`` of them are wrong (DESIGN 6.2). Without a spans table each decision stands
-alone: the road between the previous look point q and this one p gets the join of their
-designs from q on, and a decision at p supersedes the entries at positions >= p.
-
-Speed reference at x (the braking envelope, a = ``envelope_decel_fraction`` * a_dec):
+Speed reference (a = ``envelope_decel_fraction`` a_dec, m = ``braking_margin_m``, f the
+frontier, v_f = ``frontier_speed_mps``):
   ``v_ref(x) = min(c(x), min_{p_i > x} b(c_i, p_i - m - x), b(v_f, f - m - x))``,
-  ``b(c, d) = sqrt(c^2 + 2 a max(d, 0))``,
-with c(x) the command in force at x and m = ``braking_margin_m``: the command of a point ahead
-is reached m metres before it. The frontier f is the last look point a decision was taken in
-for; the road beyond it has no decision yet, and the next decision may give the slowest
-command (v_f = ``frontier_speed_mps``, the envelope's) from f on, so the car keeps able to
-reach v_f before f. Between two updates the frontier stays put for at most
-:func:`frontier_latency_s` = (1 + 3/4) T, and combined decisions that tolerate j wrong frames
-decide the road only up to the look point j ticks back, so a look-ahead L supports the
-constant speeds with ``v^2 <= v_f^2 + 2 a (L - m - (1.75 + j) T v)``
-(:func:`supported_speed_mps`; the scenario check ``drake_cert.systems.driving.check_look_ahead``
-refuses a camera that cannot carry the table's top speed).
-The envelope keeps (1 - fraction) of the braking authority for the tracking law, so the car
-catches up with it after a late (too close) entry.
-
-Tracking law (feedforward of the reference's rate along the motion plus proportional gain k):
-  ``dv/dt = clip(k (v_ref - v - v_creep [v_ref = 0]) + (dv_ref/dx) v, -a_dec, a_acc)``
-  ``dx/dt = max(v, 0)``; at v <= 0 no further braking (the car rests, speed never negative).
-On the envelope ``dv_ref/dx = -a / v_env``, so a car on the envelope stays on it exactly and
-decelerates at a < a_dec; off it, the error decays at rate k once out of saturation. A stop
-reference aims ``v_creep`` below zero, so the car comes to rest in finite time.
-A late entry (closer than :meth:`LongitudinalMotion.braking_distance_m`) cannot be met: the car
-then brakes at a_dec and reaches the point faster than its command. With the frontier no
-decision can be late: every decision's look point lies beyond the frontier the car already
-brakes for, at a command no slower than v_f.
+  ``b(c, d) = sqrt(c^2 + 2 a max(d, 0))``; tracking law, ``dx/dt = max(v, 0)`` and
+  ``dv/dt = clip(k (v_ref - v - v_creep [v_ref = 0]) + (dv_ref/dx) v, -a_dec, a_acc)``.
+A look-ahead L carries ``v^2 <= v_f^2 + 2 a (L - m - (1.75 + j) T v)`` (T the camera period,
+j = ``tolerance``; :func:`supported_speed_mps`, :func:`frontier_latency_s`), checked before
+driving by ``drake_cert.systems.driving.check_look_ahead``. Why these hold: DESIGN 6.2-6.4.
 """
 
 import dataclasses

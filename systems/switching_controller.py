@@ -1,108 +1,32 @@
 """The L1 adaptive controller that switches designs and follows the speed at run time (DESIGN 5.6).
 
-Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
-              ``curvature_per_m`` kappa (1/m), ``speed_mps`` V (m/s),
-              ``design_index`` (index into ``designs``; a float holding an integer);
-              with ``curvature_preview=True`` also ``curvature_preview_per_m`` kappa_p (1/m),
-              the road preview (``drake_cert.systems.route.RouteSource``): the feedforward u_ff, in
-              the command and in the predictor, is taken at kappa_p instead of kappa, while the
-              predictor's ``g_hat V kappa`` and its jump-free coordinates keep the curvature
-              under the car (``drake_cert.systems.l1_law``, "Road preview").
-Output ports: ``steering_rad`` u (rad, UNSATURATED, as :mod:`drake_cert.systems.l1_controller`),
-              ``active_design_index`` the design in use, ``scheduled_speed_mps`` the grid
-              speed whose parameters are in use (m/s).
-Discrete state (period T_s = settings.controller.sample_period_s, offset 0):
-  ``[s_hat (4), u_ad, active design, speed grid index, stopped (0/1), held steering (rad)]``
-  (the gradient law: slots 0-4 unused, its state is continuous; "The gradient law" below).
+Inputs: ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s), ``curvature_per_m`` kappa
+(1/m), ``speed_mps`` V (m/s), ``design_index`` (into ``designs``; a float holding an integer);
+with ``curvature_preview=True`` also ``curvature_preview_per_m`` kappa_p (1/m), at which u_ff is
+taken in command and predictor while ``g_hat V kappa`` keeps kappa (DESIGN 4.2). Outputs:
+``steering_rad`` u (rad, UNSATURATED), ``active_design_index``, ``scheduled_speed_mps`` (the grid
+speed whose parameters are in use, m/s). Discrete state (period T_s =
+``settings.controller.sample_period_s``, offset 0): ``[s_hat (4), u_ad, active design, speed
+grid index, stopped (0/1), held steering (rad)]``.
 
-``law="piecewise_constant"`` (default): the law is the piecewise-constant one of
-:mod:`drake_cert.systems.l1_law` (DESIGN 4), unchanged; only its parameters move. At each sample
-t_k,
-with the inputs read at t_k:
-1. if ``design_index`` differs from the active design, the requested one becomes active at
-   this sample (a request made in (t_{k-1}, t_k] acts at t_k; the dwell time is enforced
-   upstream, in the certified-interval block);
-2. the speed is clipped to [speed_min_mps, the design's ``gain_speed_max_mps``] (where its k_m
-   is certified) and rounded to a grid of ``speed_step_mps``; the parameters
-   ``l1_law.l1_parameters(vehicle, design, settings, V_grid)`` are computed once per
-   (design, grid point) and cached;
-3. ``l1_law.piecewise_constant_update`` advances (s_hat, u_ad); the output is
-   ``l1_law.steering_command`` with the same parameters until the next sample.
-Below ``speed_min_mps`` (the stop speed, DESIGN 2: the plant's lateral dynamics are frozen,
-and the law's 1/V model is meaningless) the controller is stopped: (s_hat, u_ad) are not
-updated (no adaptation) and the steering is held at its value at the stopping sample.
+``law="piecewise_constant"`` (default): the law of :mod:`drake_cert.systems.l1_law` (DESIGN 4),
+its parameters moving. At each sample t_k, inputs read at t_k: (1) a requested design becomes
+active (dwell is enforced upstream, in the certified-interval block) with u_ad handed over and
+s_hat reset to the measured s; (2) V is clipped to [speed_min_mps, the design's
+``gain_speed_max_mps``] and rounded to ``speed_step_mps``, the parameters of each (design, grid
+point) computed once and cached; (3) ``piecewise_constant_update`` advances (s_hat, u_ad); the
+output is ``steering_command`` with these parameters until the next sample. Below
+``speed_min_mps`` (the stop speed) nothing adapts and the steering is held from that sample.
 
-Adaptive state at a switch: u_ad is HANDED OVER and s_hat is RESET to the measured s.
-u_ad is the filtered adaptive steering correction, in rad on the same input channel for every
-design: keeping it keeps the steering continuous except for the change of -k_m s and u_ff,
-and keeps the compensation the car currently needs on this road (resetting it to 0 would drop
-e.g. the correction for a stiffness at the edge of the old interval, a steering step of that
-size). s_hat is the state of the old design's predictor (its A_m, b_m); the new predictor
-starts where the predictor starts at t = 0, at the plant's state, so the first estimate
-of the new design is not the old model's prediction error. The piecewise-constant law has no
-other memory (its estimate is recomputed from s_hat - s at every sample). A change of the
-speed grid point within a design changes the parameters only (gain scheduling).
+The gradient law (``law="gradient"``, :class:`SwitchingGradientL1Law`): the continuous law on
+x = [q_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad] (discrete slots 0-4 unused), same ports,
+sample and stop rules; at a switch the steering is kept (bumpless) and the estimates go into the
+new sets (:meth:`SwitchingGradientL1Law.hand_over`; why and measured: DESIGN 5.6). It DIVERGES
+under fixed-step RK2 at 1 ms: simulate with Radau3, fixed 1 ms steps (``integration_scheme=
+"radau3"``, ``max_step_size=0.001``, ``use_error_control=False``; DESIGN 4.4).
 
-The gradient law (``law="gradient"``, leaf :class:`SwitchingGradientL1Law`): the continuous
-law of :mod:`drake_cert.systems.l1_law` (``gradient_controller_derivatives``: Gamma, the projection
-operator) on the continuous state x = [q_hat (4), w_hat, theta_hat (4), sigma_hat, u_ad],
-integrated by the simulator with the parameters of the active (design, grid point). The
-sample at T_s (a periodic unrestricted update) switches and schedules exactly by steps 1
-and 2 above, with the same ports, outputs and stop rule (stopped: the derivative is zero and
-the steering held). When the (design, grid point) changes, x is handed over
-(:meth:`SwitchingGradientL1Law.hand_over`):
-- design switch: the STEERING is kept (bumpless): u_ad becomes u - (-k_m' s + u_ff'), u the
-  old law's command and k_m', u_ff' the new design's; q_hat is reset to the measured s as
-  above; w_hat is re-expressed as the same stiffness (w = C / C_hat, so w' = w C_hat / C_hat')
-  and clipped to the new set; theta_hat and sigma_hat are kept, scaled into the new balls;
-- grid change within a design (gain scheduling): u_ad kept as the piecewise-constant law
-  does, q_hat moved so that the prediction s_hat = q_hat - V kappa e4 is the same at the new
-  grid speed, the estimates put into the new sets;
-- switch while stopped: as a design switch with u_ad kept (the held steering is what is
-  applied, and the road preview, a mean over the distance covered in the window, is NaN at
-  rest).
-Why. The steering, not u_ad: u_ad is the correction to the OLD design's nominal model (its
-C_hat, k_m, k_ff); under the new design the same u_ad gives a steering step of
-(k_m' - k_m) s + u_ff - u_ff', then is re-learnt at the filter bandwidth k (100-450 rad/s).
-Measured (Fiala plant, 60 m curve, a switch between shipped designs, then a 4 m/s^2 ramp;
-five pairs): the largest change of the steering in one 1 ms step around the switch is
-0.0002-0.013 rad, against 0.0006-0.042 rad with u_ad handed over (the piecewise-constant law:
-0.0009-0.042 rad); the 0.013 rad (sunny -> sunny+rain+snow, 0.042 rad handed over) is the new
-filter (k = 350 rad/s) moving u_ad within the first ms, not a step. Peak |e1| is the same
-to 2 mm. The estimates: they must start in their new sets (outside one, f > 1 and the
-projection's restoring rate grows like Gamma |y| f, the stiff case of the notes in
-:mod:`drake_cert.systems.l1_law`); keeping them or resetting them (w_hat at the centre, theta =
-sigma = 0) gave the same peak |e1| to 0.1 mm and the same steering changes to 0.001 rad: they
-re-converge at the adaptation loop's rate, sqrt(Gamma b_m' P b_m) = 1 400-19 300 rad/s for
-the shipped designs, within a few ms. Keeping them is the continuous choice, and w_hat is
-re-expressed because it is one physical quantity (C); theta and sigma depend on (k_m, C_hat,
-V) and have no exact image.
-
-Numerics of the gradient law: that adaptation mode is lightly damped (real part -50 to -225 1/s
-for the shipped designs); linearised, fixed-step RK2 is stable for it only at steps below
-19-790 us, so the law DIVERGES under the driving Diagram's fixed-step RK2 at 1 ms (on the
-shipped dry_to_snow drive: NaN from its first curve on). It needs an implicit integrator:
-Radau3 with fixed 1 ms steps (SimulatorConfig ``integration_scheme="radau3"``,
-``max_step_size=0.001``, ``use_error_control=False``): the samples bound every step to T_s
-anyway; error control at accuracy 1e-4 took 2.3x the steps on a ramp with switches for a change
-of 1.5e-7 m. Cost on that ramp (Fiala plant + controller; wall s per simulated s, a loaded
-2-core machine): 0.2 for the piecewise-constant law (RK2, 1 ms), 0.75 for the gradient law
-(Radau3, fixed 1 ms: about 10 derivative evaluations per step at 22 us each, the arithmetic 5
-us of them), 2.0 with error control; implicit Euler at fixed 1 ms costs as Radau3 (1e-4 m
-apart). ``fast=True`` evaluates the derivative with :func:`gradient_derivatives_fast` (plain
-floats) and the steering from the cached command row; ``fast=False`` calls
-``l1_law.gradient_controller_derivatives`` and ``steering_command`` (the readable reference);
-tests check both agree. (A C++ ``SymbolicVectorSystem`` taking the parameters as inputs
-evaluated the derivative in 63 us, slower than the Python leaf.)
-
-Speed (piecewise-constant law): ``fast=True`` (default) evaluates the law through its affine
-matrices: for each
-(design, grid point) ``piecewise_constant_update`` and ``steering_command`` are evaluated at
-the unit vectors of [s_hat, u_ad, s, kappa (, kappa_p)] (both are affine in them, exactly),
-giving one matrix-vector product per sample. ``fast=False`` calls the law's functions at
-each sample, the readable reference; tests check both agree. Both are Python (a few tens of
-us per call): the parameters are scheduled at run time, which Drake's C++ ``AffineSystem``
-cannot do.
+``fast=True`` (default): the law's exact affine rows, :func:`gradient_derivatives_fast`;
+``fast=False``: the ``l1_law`` functions, the readable reference (tests: both agree).
 """
 
 import dataclasses

@@ -1,54 +1,29 @@
-"""Adversarially robust conformal label sets and stiffness intervals (DESIGN 3, "Coverage without
-the standing assumption").
+"""Adversarially robust conformal label sets and stiffness intervals (DESIGN 3.6, "Coverage
+without the standing assumption").
 
-The run-time interval of :func:`~drake_cert.certification.intervals.runtime_classification_interval`
-says how far the prediction can be pushed; it holds the TRUE stiffness only if the smoothed
-classifier is right on the clean frame. This module builds an interval that holds the true
-stiffness with probability at least ``1 - alpha_total`` under any L2 perturbation of at most
-eps, with no assumption that the classifier is right: randomized-smoothed conformal prediction
-(Gendler et al. 2022, RSCP) with a finite-sample Monte-Carlo correction in the spirit of Yan et
-al. 2024 (RSCP+), Mondrian (per true label), on the smoothed vote score.
+Unlike :func:`~drake_cert.certification.intervals.runtime_classification_interval`, which holds
+the TRUE stiffness only if the smoothed classifier is right on the clean frame, the interval
+built here holds it with probability at least ``1 - alpha_total`` under any L2 perturbation of
+at most eps, with no assumption that the classifier is right: randomized-smoothed conformal
+prediction (Gendler et al. 2022) with a finite-sample Monte-Carlo correction (after Yan et al.
+2024), Mondrian (per true label), on the smoothed vote share ``p_l(x)``.
 
-Score. ``p_l(x) = P(f(x + N(0, sigma^2 I)) = l)``, the smoothed vote share of label l (a
-conformity score: high means "x looks like l"). Cohen et al. Lemma 2: ``Phi^-1(p_l(x))`` is
-1/sigma-Lipschitz in x, so for ``||x' - x||_2 <= eps``:
-``p_l(x') >= Phi(Phi^-1(p_l(x)) - eps/sigma)``.
+Calibration (:func:`calibrate_robust_conformal`; per label l, held-out frames of true label l,
+each with its own noise stream): scores ``r_i = CPlow(k_i; n, beta_cal)``, the one-sided
+Clopper-Pearson lower bound on the true label's share; ``q_l`` the ``floor(alpha_c (n_l + 1))``-th
+smallest (0 when that index is 0: label l is then always in the set). Threshold at budget eps:
+``t_l(eps) = Phi(Phi^-1(q_l) - eps/sigma)``. Run time at the observed frame x' (n fresh samples):
+``C(x') = {l : CPup(k'_l; n, beta_test) >= t_l(eps)}``; the interval is the hull of the
+stiffness intervals from its first to its last label in friction order (the envelope when C is
+empty). :func:`sequential_label_set` decides the same set at looks fixed in advance.
 
-Calibration (per label l, on ``n_l`` held-out frames of true label l, each with its own noise
-stream): ``r_i = CPlow(k_i; n, beta_cal)``, the one-sided Clopper-Pearson lower bound at level
-``beta_cal`` on ``p_l(x_i)`` from ``k_i`` votes for l among n noisy samples; ``q_l = r_(j)``, the
-j-th smallest, ``j = floor(alpha_c (n_l + 1))`` (``q_l = 0`` when ``j = 0``: too few frames for
-alpha_c, label l is then always in the set). The run-time threshold at budget eps is
-``t_l(eps) = Phi(Phi^-1(q_l) - eps/sigma)``.
-
-Run time, at the observed frame x' (n fresh samples, ``k'_l`` votes per label): the label set is
-``C(x') = {l : CPup(k'_l; n, beta_test) >= t_l(eps)}``, the interval is the hull of the
-stiffness intervals of the contiguous friction range from the first to the last label of
-``C(x')`` (the envelope when C is empty).
-
-Argument. Let (x, y) be the clean test frame, x' = x + delta with ``||delta|| <= eps`` chosen by
-an attacker who may know x, the model and the calibration but not the test noise.
-(a) Imagine n fresh noisy samples at the clean x and the score r = CPlow(k; n, beta_cal) they
-    would give label y. Calibration frames of label y and (x, y) are exchangeable, and so are
-    their scores (each frame's noise is drawn independently from the same law), so
-    ``P(r >= q_y) >= 1 - alpha_c`` (split conformal, lower tail; Vovk et al., Mondrian).
-(b) ``P(p_y(x) >= r) >= 1 - beta_cal`` (Clopper-Pearson). With (a): ``p_y(x) >= q_y`` with
-    probability ``>= 1 - alpha_c - beta_cal``; the imagined samples are only a device of the
-    proof and need never be drawn.
-(c) Then ``p_y(x') >= t_y(eps)`` for every such x' (Lipschitz bound, deterministic).
-(d) The run-time samples at x' are independent of everything above: ``CPup(k'_y) >= p_y(x')``
-    with probability ``>= 1 - beta_test``. Then ``y in C(x')``.
-(e) The condition table's interval of label y holds the true stiffness (true of the synthetic
-    generator by construction; an assumption for real data), so the hull holds it.
-So ``P(C_true in interval) >= 1 - alpha_total``, ``alpha_total = alpha_c + beta_cal +
-beta_test``, for each true label (Mondrian) and hence marginally, over calibration frames,
-test frame and all noise. Assumptions: exchangeability of calibration and test frames within a
-label (held-out frames of the same generator: yes; real deployment: a stated assumption, it
-fails under distribution shift); the attacker does not know the test noise; ``||delta|| <= eps``.
-Not claimed: coverage conditional on one given frame, or for frames of another distribution.
-
-Defaults: alpha_c = 0.008, beta_cal = beta_test = 0.001, alpha_total = 0.01. alpha_c needs at
-least ``1/alpha_c - 1`` calibration frames per label (124 at 0.008) for a non-trivial threshold.
+Guarantee: ``P(C_true in interval) >= 1 - alpha_total``, ``alpha_total = alpha_c + beta_cal +
+beta_test``, per true label and marginally, over calibration frames, test frame and all noise.
+Assumes calibration and test frames exchangeable within a label (fails under distribution
+shift), an attacker who does not know the test noise, ``||delta|| <= eps``, and the condition
+table's interval of each label holding its stiffness. Not claimed: coverage for one given
+frame. Defaults alpha_c = 0.008, beta_cal = beta_test = 0.001 (alpha_total = 0.01); alpha_c
+needs at least ``1/alpha_c - 1`` calibration frames per label (124 at 0.008).
 """
 
 from __future__ import annotations

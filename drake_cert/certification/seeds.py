@@ -1,47 +1,30 @@
 """The project's one seed scheme: every random draw comes from a named stream of a root seed.
 
 A stream is ``numpy.random.SeedSequence(root, spawn_key=(code(purpose), *keys))``: the child
-that ``SeedSequence(root).spawn`` would hand out at those positions, but addressed directly,
-so that frame 17's streams do not depend on how many frames were drawn before it.
-``purpose`` is a :class:`Purpose` (or its name) and ``keys`` are non-negative integers that say
-which draw of that purpose it is (a frame, a camera tick, a segment, a preset; floats enter
-through :func:`float_key`). SeedSequence hashes the root together with the whole spawn key,
-so two streams that differ in purpose or key are statistically independent, and in practice
-their 63-bit seeds differ (tested over many keys). Same root, purpose and keys: the same
-draws, on any machine.
+that ``SeedSequence(root).spawn`` would hand out at those positions, addressed directly, so
+frame 17's streams do not depend on how many frames were drawn before it. ``purpose`` is a
+:class:`Purpose` (or its name); ``keys`` are non-negative integers saying which draw of that
+purpose it is (frame, camera tick, segment, preset; floats through :func:`float_key`). Streams
+that differ in purpose or key are statistically independent; same root, purpose and keys give
+the same draws on any machine. Draw from :func:`torch_generator` (:mod:`drake_cert.rng`,
+re-exported here) or a numpy Generator, never from ``torch.Generator().manual_seed``, which
+keeps only 32 bits of the seed on the CPU (DESIGN 3.10 says why and what it cost).
 
-Draws come from :func:`torch_generator` (:mod:`drake_cert.rng`, re-exported here) or a numpy
-Generator, never from ``torch.Generator().manual_seed``: torch's CPU generator (mt19937) keeps
-only the low 32 bits of a seed, so seeds that differ above bit 31 drew identical noise (with
-root 1, the attack stream of tick 14383 was the estimation stream of tick 37288).
-:func:`torch_generator` fills the whole mt19937 state (624 words) from ``SeedSequence(seed)``,
-so a stream's generator state depends on every bit of its 63-bit seed, and streams with
-different keys draw different noise (their seeds and first state words are tested distinct
-over 10^6 keys). Other devices (CUDA's Philox) take all 64 bits of ``manual_seed``.
+Who uses which purpose (keys in parentheses):
 
-Who uses which purpose (keys in parentheses; a root is a user's seed or a seed derived here):
+- the driving Diagram (root: the scenario's seed): ``route`` (segment), ``camera``,
+  ``attack``, ``selection``, ``estimation`` (each keyed by tick); ``regression_calibration``,
+  ``conformal_calibration``, ``quantization_calibration`` (no key: once before a drive);
+- perception experiments (root: the experiment's seed): ``frame_choice`` (no key); ``attack``,
+  ``selection``, ``estimation``, ``attacked_selection``, ``attacked_estimation``,
+  ``calibration``, each keyed (split, frame) (:func:`stream_seed`, :func:`streams`); a robust
+  conformal calibration draws ``calibration`` (calibration split, frame) of its root;
+- the reproduction (root: the run's seed): ``frame_choice`` (preset), ``regression_calibration``
+  and ``conformal_calibration`` (preset, sigma), and ``cell`` (preset, pipeline, attack, sigma,
+  eps), the root of that cell's Diagram blocks, which draw ``attack``, ``selection`` and
+  ``estimation`` keyed by the frame's position, exactly as in a drive.
 
-- the driving Diagram (root: the scenario's seed): ``route`` (segment), ``camera`` (tick),
-  ``attack`` (tick), ``selection`` (tick; the selection samples of a certificate),
-  ``estimation`` (tick; the samples that bound the label probabilities, or the median's),
-  ``regression_calibration``, ``conformal_calibration`` and ``quantization_calibration`` (no
-  key: one calibration before a drive each);
-- perception experiments (root: the experiment's seed): ``frame_choice`` (no key),
-  ``attack``, ``selection``, ``estimation``, ``attacked_selection``, ``attacked_estimation``
-  and ``calibration``, each keyed (split, frame) (:func:`stream_seed`, :func:`streams`);
-  a robust conformal calibration draws ``calibration`` (calibration split, frame) of its root;
-- the reproduction (root: the run's seed): ``frame_choice`` (preset),
-  ``regression_calibration`` and ``conformal_calibration`` (preset, sigma), and ``cell``
-  (preset, pipeline, attack, sigma, eps): the root of that cell's Diagram blocks, which draw
-  ``attack``, ``selection`` and ``estimation`` keyed by the frame's position, exactly as in
-  a drive.
-
-Why: a certificate's guarantee is over noise the attacker does not know, and a conformal
-guarantee needs calibration noise independent of test noise. Offsets added to one integer seed
-(``seed + i``, ``seed + 500_000``) once made the attack stream of one frame the certificate
-stream of another; spawn keys cannot collide that way.
-
-Codes of purposes are their places in :class:`Purpose`: append new purposes at the end, never
+A purpose's code is its place in :class:`Purpose`: append new purposes at the end, never
 reorder (a reorder changes every draw).
 """
 

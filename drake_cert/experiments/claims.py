@@ -1,33 +1,24 @@
 """The paper's claims, checked on a reproduction's per-frame rows (DESIGN 7.3).
 
-``claims.md`` and ``claims.json`` (:func:`claims_document`) lead with the headline of
-:mod:`drake_cert.experiments.headline`: per pipeline, the share of (certified) attacked
-episodes and of frames that left the lane, not conditioned on the truth, with intervals that
-account for clustering by frame, beside f at the same budget; then the split by whether the
-certified label range holds the true label, as a diagnostic for every pipeline alike. Then,
-per preset, over the frames the run holds:
-1. the non-robust pipeline f is unstable under the safety attack (SA): share of f's episodes
-   that left the lane, per budget;
+``claims.md`` and ``claims.json`` (:func:`claims_document`) open with the headline of
+:mod:`drake_cert.experiments.headline` (per pipeline, departures not conditioned on the truth,
+with intervals that account for clustering by frame, beside f at the same budget) and its split
+by whether the certified label range holds the true label, a diagnostic for every pipeline.
+Then, per preset, over the frames the run holds:
+1. the non-robust pipeline f is unstable under the safety attack (SA): the share of f's
+   episodes that left the lane, per budget;
 2. f loses speed under the efficiency attack (EA): mean velocity per budget against clean;
 3. the certified pipeline g keeps 0% instability inside its certificates: among g's attacked
-   episodes whose run-time interval was certified at the attack's budget (``certified``), how
-   many left the lane, with a 95% Clopper-Pearson upper bound on that share, over all of them
-   and over those whose frame g labels right when clean (the safe-set interval's standing
-   assumption); the departures are listed frame by frame with g's clean label. The same
-   episodes split by what the certificate concludes: the certified label range (the labels of
-   the design it selected) holds the frame's true label, or misses it. Where it holds, the
-   design was synthesized for the true condition's stiffness and a friction no higher than the
-   true one, so a departure there would be the controller's failure; where it misses, the
-   perception claim failed (for the safe-set interval whenever g is wrong clean; for the
-   robust conformal interval with probability at most its alpha_total). The split is a
-   diagnostic of the controller designs, not a test of the certificate: where the range holds
-   the true label even f does not leave its lane;
+   episodes certified at the attack's budget (``certified``), how many left the lane, with a
+   95% Clopper-Pearson upper bound, over all of them and over those whose frame g labels right
+   when clean (the safe-set interval's standing assumption); departures listed frame by frame
+   with g's clean label; the same episodes split by whether the certified label range (the
+   labels of the design it selected) holds the frame's true label or misses it;
 4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
 
-Shares carry their 95% Clopper-Pearson interval (two-sided; the upper bound of claim 3 is
-the interval's upper end), counted over episodes, each a different (frame, cell): they treat
-episodes as independent, which departures clustered on a few frames are not; the headline's
-intervals account for that.
+Shares carry their 95% two-sided Clopper-Pearson interval (claim 3's upper bound is its upper
+end), counted over episodes as if independent; the headline's intervals are the ones that
+account for departures clustering on frames (DESIGN 7.3).
 """
 
 from __future__ import annotations

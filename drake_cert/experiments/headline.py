@@ -1,38 +1,25 @@
 """The reproduction's headline: how often the car left its lane, not conditioned on the truth.
 
-A reproduction's frame rows (:mod:`drake_cert.experiments.reproduce`, or ``frames.csv`` read
-back by :func:`read_frames_csv`) hold, per test frame and cell, whether the episode on the
-Fiala plant left the lane. This module counts, for every pipeline in the rows (whatever its
-name: ``f``, ``g``, ``g_conformal``, ``f_reg``, ``h``, ...):
+Input: a reproduction's frame rows (:mod:`drake_cert.experiments.reproduce`, or ``frames.csv``
+read back by :func:`read_frames_csv`), one per test frame and cell, saying whether the episode
+on the Fiala plant left the lane. For every pipeline in the rows (whatever its name: ``f``,
+``g``, ``g_conformal``, ``f_reg``, ``h``, ...), per selection (every attacked episode; each
+attack at each budget) and scope (all presets; each preset):
 
-* the *episode share*: among the pipeline's attacked episodes -- only those whose run-time
-  interval was certified at the attack's budget, for a pipeline that certifies (any of its
-  rows has ``certified`` true); all of them for one that does not (f, f_reg) -- the share that
-  left the lane. Nothing here asks whether the certified label range holds the true label:
-  the car never sees the truth, so the figure a user can rely on must not condition on it.
+* the *episode share*: among the pipeline's attacked episodes (only those certified at the
+  attack's budget, for a pipeline any of whose rows has ``certified`` true; all of them for one
+  that does not, such as f and f_reg), the share that left the lane;
 * the *frame share*: among the frames with at least one such episode, the share with at
   least one departure.
 
-Intervals (95%). Departures cluster by frame (a frame g labels wrong when clean fails in
-several cells at once), so episodes of one frame are not independent and a per-episode
-Clopper-Pearson interval is too narrow. The episode share carries a **per-frame cluster
-bootstrap** percentile interval: the frames (clusters, keyed by preset and frame) holding the
-pipeline's rows are drawn with replacement, as many as there are, ``resamples`` times
-(default 10,000) with ``numpy.random.default_rng(seed)`` (default seed 0; each selection
-starts a fresh generator, so a figure does not depend on which others are computed), and the
-2.5% and 97.5% quantiles of the pooled share (departures / episodes over the drawn frames)
-are the interval. Where no episode departs (or every one does) every resample gives the same
-share and the bootstrap has no spread; the interval is then the frame share's interval
-below, which bounds the episode share when frames carry equally many episodes. The frame
-share carries an exact two-sided **Clopper-Pearson** interval over frames, which are drawn
-independently from each preset's test split. Both assume the test frames are a random sample
-of the frames the car will see; neither covers a different data distribution.
-
-The split by whether the certified label range (the labels of the design in force) holds the
-frame's true label is kept as a diagnostic (:func:`truth_conditioned`), for every pipeline
-alike: under that condition a design was synthesized for the true condition, so even the
-non-robust f does not leave its lane there. It tests the controller designs, not the
-certificate.
+Neither asks whether the certified label range holds the true label. Intervals (95%): the
+episode share by a per-frame cluster bootstrap (frames keyed by preset and frame, drawn with
+replacement, ``resamples`` = 10,000 times with ``numpy.random.default_rng(seed)``, seed 0, a
+fresh generator per selection; where every resample gives the same share, the frame share's
+interval instead); the frame share by an exact two-sided Clopper-Pearson interval over frames.
+Both assume the test frames are a random sample of the frames the car will see. Why these
+figures and intervals: DESIGN 7.3. :func:`truth_conditioned` gives the split by whether the
+certified range holds the true label, a diagnostic of the controller designs only.
 """
 
 from __future__ import annotations
