@@ -35,7 +35,12 @@ def test_help_speaks_to_a_user_not_a_developer(capsys):
     out = " ".join(capsys.readouterr().out.split())  # whatever the terminal's width
     assert "``" not in out  # no reStructuredText from a module docstring
     assert "Certified robust perception-based lateral control" in out
-    assert "drake-cert synthesize --out designs.yaml" in out
+    # the three-command workflow, each command as a user types it
+    for line in ("drake-cert synthesize --vehicle my_car.yaml --out designs.yaml",
+                 "drake-cert verify designs.yaml --vehicle my_car.yaml",
+                 "drake-cert drive --scenario dry_to_snow --compare --attack sa --designs "
+                 "designs.yaml"):
+        assert line in out
 
 
 def test_progress_off_a_terminal_is_ascii_lines_at_most_a_minute_apart(capsys):

@@ -17,12 +17,17 @@ import sys
 from drake_cert import __version__
 from drake_cert.errors import DrakeCertError
 
-DESCRIPTION = ("Certified robust perception-based lateral control: synthesize and verify "
-               "controller designs, certify perception models, and drive the certified "
+DESCRIPTION = ("Certified robust perception-based lateral control: synthesize and verify\n"
+               "controller designs, certify perception models, and drive the certified\n"
                "closed loop in Drake.")
-EPILOG = ("Start with `drake-cert synthesize --out designs.yaml`, then `drake-cert drive "
-          "--scenario dry_to_snow --compare --attack sa --designs designs.yaml`; "
-          "`drake-cert COMMAND --help` for each command. Mistakes get one line and exit code 2.")
+EPILOG = """\
+Your vehicle in three commands:
+  drake-cert synthesize --vehicle my_car.yaml --out designs.yaml
+  drake-cert verify designs.yaml --vehicle my_car.yaml
+  drake-cert drive --scenario dry_to_snow --compare --attack sa --designs designs.yaml
+
+`drake-cert COMMAND --help` for each command; docs/usage.md for files and units. Mistakes get
+one line and exit code 2."""
 
 COMMANDS = {
     "synthesize": "synthesize the design table (gains, filter gain, safe speed) for a vehicle",
@@ -100,7 +105,8 @@ class _Parser(argparse.ArgumentParser):
 
 
 def build_parser(command: str | None) -> argparse.ArgumentParser:
-    parser = _Parser(prog="drake-cert", description=DESCRIPTION, epilog=EPILOG)
+    parser = _Parser(prog="drake-cert", description=DESCRIPTION, epilog=EPILOG,
+                     formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     for name, help_text in COMMANDS.items():
