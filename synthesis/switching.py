@@ -475,9 +475,27 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
     if not (math.isfinite(certificate.decay_rate_per_s) and certificate.decay_rate_per_s > 0.0):
         failures.append(f"{name}: decay rate {certificate.decay_rate_per_s!r}/s must be positive")
         return failures
+    matrix_of, found = _matrix_assignment(certificate, keys, name)
+    failures += found
+    if matrix_of is None:
+        return failures
+    matrices, found = _checked_matrices(matrix_of, name)
+    failures += found
+    failures += _corner_failures(vehicle, syn, covered, keys, matrix_of, matrices, certificate,
+                                 name)
+    if certificate.method == DWELL:  # the jumps among the modes this table's designs use
+        failures += _dwell_failures(matrices, certificate, name)
+    return failures + _loop_failures(vehicle, covered, settings, certificate, name)
+
+
+def _matrix_assignment(certificate: SwitchingCertificate, keys: list[str], name: str
+                       ) -> tuple[dict | None, list[str]]:
+    """Which stored matrix proves each covered design: ``({key: (label, rows)}, failures)``;
+    None instead of the assignment where the certificate stores no matrix to check."""
+    failures = []
     if certificate.method == COMMON:
         if certificate.lyapunov_matrix is None:
-            return failures + [f"{name}: method 'common' without a Lyapunov matrix"]
+            return None, [f"{name}: method 'common' without a Lyapunov matrix"]
         matrix_of = {k: ("P", certificate.lyapunov_matrix) for k in keys}
         if certificate.dwell_time_s != 0.0:
             failures.append(f"{name}: a common P needs no dwell time, but "
@@ -490,6 +508,13 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
         unassigned = [k for k in keys if k not in matrix_of]
         if unassigned:
             failures.append(f"{name}: design {unassigned[0]} has no mode Lyapunov matrix")
+    return matrix_of, failures
+
+
+def _checked_matrices(matrix_of: dict, name: str) -> tuple[dict[str, np.ndarray], list[str]]:
+    """The stored matrices that are finite, 4 x 4, symmetric and positive definite, by label,
+    and the failures of the others."""
+    failures = []
     matrices = {}
     for label, rows in {v[0]: v[1] for v in matrix_of.values()}.items():
         p = np.asarray(rows, dtype=float)
@@ -504,6 +529,16 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
                             f"{np.linalg.eigvalsh(p).min():.6g})")
             continue
         matrices[label] = p
+    return matrices, failures
+
+
+def _corner_failures(vehicle: VehicleParams, syn: SynthesisSettings,
+                     covered: list[ControllerDesign], keys: list[str], matrix_of: dict,
+                     matrices: dict[str, np.ndarray], certificate: SwitchingCertificate,
+                     name: str) -> list[str]:
+    """The covered designs (first corner each) whose matrix proves less than the stored decay
+    rate, within :data:`SWITCHING_TOLERANCE`."""
+    failures = []
     wanted = certificate.decay_rate_per_s - SWITCHING_TOLERANCE
     for d, key in zip(covered, keys, strict=True):
         if key not in matrix_of or matrix_of[key][0] not in matrices:
@@ -520,16 +555,22 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
                     "/s (max eig of the symmetrised LMI "
                     f"{_lmi_max_eig(p, m, certificate.decay_rate_per_s):.6g} > 0)")
                 break
-    if certificate.method == DWELL:  # the jumps among the modes this table's designs use
-        mu = _largest_jump(list(matrices.values()))
-        if mu > certificate.jump_factor * (1.0 + JUMP_TOLERANCE):
-            failures.append(f"{name}: jump factor max lambda_max(P_n^-1 P_m) = {mu:.6g} exceeds "
-                            f"the stored {certificate.jump_factor}")
-        need = math.log(max(mu, 1.0)) / (2.0 * certificate.decay_rate_per_s)
-        if certificate.dwell_time_s < need * (1.0 - JUMP_TOLERANCE):
-            failures.append(f"{name}: dwell time {certificate.dwell_time_s} s is below "
-                            f"ln(mu) / (2 lambda_0) = {need:.6g} s")
-    return failures + _loop_failures(vehicle, covered, settings, certificate, name)
+    return failures
+
+
+def _dwell_failures(matrices: dict[str, np.ndarray], certificate: SwitchingCertificate,
+                    name: str) -> list[str]:
+    """For "dwell": the stored jump factor mu and dwell time against the modes' matrices."""
+    failures = []
+    mu = _largest_jump(list(matrices.values()))
+    if mu > certificate.jump_factor * (1.0 + JUMP_TOLERANCE):
+        failures.append(f"{name}: jump factor max lambda_max(P_n^-1 P_m) = {mu:.6g} exceeds "
+                        f"the stored {certificate.jump_factor}")
+    need = math.log(max(mu, 1.0)) / (2.0 * certificate.decay_rate_per_s)
+    if certificate.dwell_time_s < need * (1.0 - JUMP_TOLERANCE):
+        failures.append(f"{name}: dwell time {certificate.dwell_time_s} s is below "
+                        f"ln(mu) / (2 lambda_0) = {need:.6g} s")
+    return failures
 
 
 def _loop_failures(vehicle, covered, settings, certificate, name) -> list[str]:

@@ -926,13 +926,7 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
         (ticks.seen_stiffness_n_per_rad <= ticks.interval_n_per_rad[:, 1])
-    dt = np.diff(tape.times_s)
-    on_route = tape.arc_length_m[:-1] >= 0.0 if len(dt) else np.zeros(0, bool)
-    mean_speed = float(np.sum((tape.speed_mps[:-1] * dt)[on_route]) / np.sum(dt[on_route])) \
-        if np.any(on_route) else float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
-    envelope_time = (float(np.sum(dt[on_route & (tape.design_index[:-1] == envelope_index)])
-                           / np.sum(dt[on_route]))
-                     if envelope_index is not None and np.any(on_route) else None)
+    mean_speed, envelope_time = _route_speed_figures(tape, envelope_index)
     peak = float(np.max(np.abs(tape.lateral_offset_m))) if len(tape.times_s) else 0.0
     design_covers, unprotected = protection(tape)
     attacked = scenario.attack.kind in ("sa", "ea")
@@ -963,17 +957,50 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
             scenario, alpha_spending, math.ceil(simulated_s * scenario.camera.rate_hz - 1e-9)),
         "attack_within_certified_budget": (not attacked
                                            or scenario.attack.eps <= scenario.perception.eps),
+        **_tick_decision_fractions(ticks, covers, envelope_index),
+        "envelope_time_fraction": envelope_time,
+        "lead_in_m": float(lead_in_m),
+        "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
+        "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,
+        "max_samples_per_tick": int(np.max(ticks.samples)) if len(ticks.samples) else 0,
+        **_perception_settings(scenario, seed_source),
+        **(guarantee or {}),
+    }
+
+
+def _route_speed_figures(tape: DriveTape, envelope_index: int | None
+                         ) -> tuple[float, float | None]:
+    """:func:`summarize_drive`'s mean speed over the route (from the first point a frame
+    showed) and share of the route's time the envelope design is in force (None without an
+    envelope or a route)."""
+    dt = np.diff(tape.times_s)
+    on_route = tape.arc_length_m[:-1] >= 0.0 if len(dt) else np.zeros(0, bool)
+    mean_speed = float(np.sum((tape.speed_mps[:-1] * dt)[on_route]) / np.sum(dt[on_route])) \
+        if np.any(on_route) else float(tape.speed_mps[0]) if len(tape.speed_mps) else 0.0
+    envelope_time = (float(np.sum(dt[on_route & (tape.design_index[:-1] == envelope_index)])
+                           / np.sum(dt[on_route]))
+                     if envelope_index is not None and np.any(on_route) else None)
+    return mean_speed, envelope_time
+
+
+def _tick_decision_fractions(ticks: TickLog, covers: np.ndarray,
+                             envelope_index: int | None) -> dict:
+    """:func:`summarize_drive`'s shares of camera ticks: abstentions, certified but wrong, and
+    the envelope in force after the dwell time."""
+    return {
         "abstention_fraction": (float(np.mean(ticks.requested_design_index == envelope_index))
                                 if envelope_index is not None and len(ticks.status) else None),
         "certified_wrong_fraction": (
             float(np.mean((ticks.requested_design_index != envelope_index) & ~covers))
             if envelope_index is not None and len(ticks.status) else None),
         "envelope_fraction": float(np.mean(ticks.status == 1)) if len(ticks.status) else None,
-        "envelope_time_fraction": envelope_time,
-        "lead_in_m": float(lead_in_m),
-        "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
-        "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,
-        "max_samples_per_tick": int(np.max(ticks.samples)) if len(ticks.samples) else 0,
+    }
+
+
+def _perception_settings(scenario: Scenario, seed_source: str) -> dict:
+    """:func:`summarize_drive`'s figures of the perception's settings: sample rate needed,
+    seed, precision, decision rule, backend and quantization."""
+    return {
         # the modelled perception latency T/4 holds on hardware that draws the most samples a
         # tick may take (n0 + n) in T/4
         "samples_per_s_required": (
@@ -987,5 +1014,4 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "backend": resolve_backend(scenario.perception.backend,
                                    resolve_precision(scenario.perception.precision)),
         "quantization": scenario.perception.quantization,
-        **(guarantee or {}),
     }

@@ -301,6 +301,49 @@ def _kinematics_system(x0: float, v0: float) -> SymbolicVectorSystem:
                                 output=[x0 + dx, speed])
 
 
+def _check_motion_limits(*, max_decel_mps2: float, max_accel_mps2: float,
+                         speed_gain_per_s: float, rate_hz: float, stop_speed_mps: float,
+                         creep_speed_mps: float, initial_speed_mps: float,
+                         envelope_decel_fraction: float, braking_margin_m: float) -> None:
+    """:class:`LongitudinalMotion`'s checks of its rates, speeds and margins, in order."""
+    for name, value in (("max_decel_mps2", max_decel_mps2),
+                        ("max_accel_mps2", max_accel_mps2),
+                        ("speed_gain_per_s", speed_gain_per_s), ("rate_hz", rate_hz),
+                        ("stop_speed_mps", stop_speed_mps),
+                        ("creep_speed_mps", creep_speed_mps)):
+        if not (math.isfinite(value) and value > 0):
+            raise ConfigError(f"longitudinal: {name} = {value!r} must be positive")
+    if not (math.isfinite(initial_speed_mps) and initial_speed_mps >= 0):
+        raise ConfigError(f"longitudinal: initial_speed_mps = {initial_speed_mps!r} must "
+                          "be >= 0")
+    if not 0 < envelope_decel_fraction < 1:
+        raise ConfigError("longitudinal: envelope_decel_fraction = "
+                          f"{envelope_decel_fraction!r} must be in (0, 1)")
+    if not (math.isfinite(braking_margin_m) and braking_margin_m >= 0):
+        raise ConfigError(f"longitudinal: braking_margin_m = {braking_margin_m!r} must be "
+                          ">= 0")
+
+
+def _check_decision_options(*, join, design_speeds_mps, frontier_speed_mps, window_m: float,
+                            spans, envelope_index, tolerance) -> None:
+    """:class:`LongitudinalMotion`'s checks of its join table, frontier speed and combined
+    decisions, in order."""
+    if (join is None) != (design_speeds_mps is None):
+        raise ConfigError("longitudinal: join and design_speeds_mps go together")
+    if frontier_speed_mps is not None and not (math.isfinite(frontier_speed_mps)
+                                               and frontier_speed_mps >= 0):
+        raise ConfigError(f"longitudinal: frontier_speed_mps = {frontier_speed_mps!r} must "
+                          "be >= 0")
+    if not (math.isfinite(window_m) and window_m >= 0):
+        raise ConfigError(f"longitudinal: window_m = {window_m!r} must be >= 0")
+    if (spans is not None) != (window_m > 0) or (spans is not None and (
+            join is None or envelope_index is None)):
+        raise ConfigError("longitudinal: combined decisions need spans, window_m > 0, the "
+                          "join table and envelope_index together")
+    if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
+        raise ConfigError(f"longitudinal: tolerance = {tolerance!r} must be an integer >= 0")
+
+
 class LongitudinalMotion(Diagram):
     """Speed and arc length of the car under the certified speed commands (module docstring).
 
@@ -322,22 +365,12 @@ class LongitudinalMotion(Diagram):
                  spans: Sequence[tuple[int, int]] | None = None, window_m: float = 0.0,
                  tolerance: int = 1, envelope_index: int | None = None):
         super().__init__()
-        for name, value in (("max_decel_mps2", max_decel_mps2),
-                            ("max_accel_mps2", max_accel_mps2),
-                            ("speed_gain_per_s", speed_gain_per_s), ("rate_hz", rate_hz),
-                            ("stop_speed_mps", stop_speed_mps),
-                            ("creep_speed_mps", creep_speed_mps)):
-            if not (math.isfinite(value) and value > 0):
-                raise ConfigError(f"longitudinal: {name} = {value!r} must be positive")
-        if not (math.isfinite(initial_speed_mps) and initial_speed_mps >= 0):
-            raise ConfigError(f"longitudinal: initial_speed_mps = {initial_speed_mps!r} must "
-                              "be >= 0")
-        if not 0 < envelope_decel_fraction < 1:
-            raise ConfigError("longitudinal: envelope_decel_fraction = "
-                              f"{envelope_decel_fraction!r} must be in (0, 1)")
-        if not (math.isfinite(braking_margin_m) and braking_margin_m >= 0):
-            raise ConfigError(f"longitudinal: braking_margin_m = {braking_margin_m!r} must be "
-                              ">= 0")
+        _check_motion_limits(max_decel_mps2=max_decel_mps2, max_accel_mps2=max_accel_mps2,
+                             speed_gain_per_s=speed_gain_per_s, rate_hz=rate_hz,
+                             stop_speed_mps=stop_speed_mps, creep_speed_mps=creep_speed_mps,
+                             initial_speed_mps=initial_speed_mps,
+                             envelope_decel_fraction=envelope_decel_fraction,
+                             braking_margin_m=braking_margin_m)
         self.max_decel_mps2 = float(max_decel_mps2)
         self.max_accel_mps2 = float(max_accel_mps2)
         self.speed_gain_per_s = float(speed_gain_per_s)
@@ -345,21 +378,10 @@ class LongitudinalMotion(Diagram):
         self.envelope_decel_mps2 = envelope_decel_fraction * self.max_decel_mps2
         self.braking_margin_m = float(braking_margin_m)
         self.creep_speed_mps = float(creep_speed_mps)
-        if (join is None) != (design_speeds_mps is None):
-            raise ConfigError("longitudinal: join and design_speeds_mps go together")
+        _check_decision_options(join=join, design_speeds_mps=design_speeds_mps,
+                                frontier_speed_mps=frontier_speed_mps, window_m=window_m,
+                                spans=spans, envelope_index=envelope_index, tolerance=tolerance)
         self._join, self._speeds = join, design_speeds_mps
-        if frontier_speed_mps is not None and not (math.isfinite(frontier_speed_mps)
-                                                   and frontier_speed_mps >= 0):
-            raise ConfigError(f"longitudinal: frontier_speed_mps = {frontier_speed_mps!r} must "
-                              "be >= 0")
-        if not (math.isfinite(window_m) and window_m >= 0):
-            raise ConfigError(f"longitudinal: window_m = {window_m!r} must be >= 0")
-        if (spans is not None) != (window_m > 0) or (spans is not None and (
-                join is None or envelope_index is None)):
-            raise ConfigError("longitudinal: combined decisions need spans, window_m > 0, the "
-                              "join table and envelope_index together")
-        if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
-            raise ConfigError(f"longitudinal: tolerance = {tolerance!r} must be an integer >= 0")
         self._spans = None if spans is None else [tuple(map(int, s)) for s in spans]
         self._design_of_span = (None if spans is None
                                 else {s: i for i, s in enumerate(self._spans)})

@@ -266,30 +266,37 @@ class SmoothedClassifier(SmoothedModel):
             futility_level: level of the upper bounds that give up (default 0.01): it trades
                 samples against certified frames, never soundness.
         """
-        check_alpha(alpha)
-        check_count(n_max, "n_max")
-        check_count(batch_size, "batch_size")
-        if not (math.isfinite(eps) and eps >= 0):
-            raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
-        if isinstance(selection_n, bool) or not isinstance(selection_n, (int, np.integer)) \
-                or selection_n < 0:
-            raise CertificationError(f"selection_n = {selection_n!r} must be an integer >= 0")
-        if selection_n and not (ranges is None or callable(ranges)):
-            raise CertificationError("selection_n chooses a top label: give ranges as a "
-                                     "function of that label (or None), not a fixed list")
-        top = None
-        if selection_n:
-            select_gen = make_generator(selection_seed, self.device)
-            top = select_label(self.sample_counts(x, selection_n, batch_size, select_gen,
-                                                  selection=True))
-        elif ranges is None or callable(ranges):
-            top = self.base_label(x)
+        _check_decide_arguments(eps, alpha, n_max, batch_size, ranges, selection_n)
+        top = self._decide_top(x, ranges, batch_size, selection_n, selection_seed)
         candidates = self._candidates(ranges, top)
         singles = sorted({top} if top is not None else {t for c in candidates for t in c})
         masses = sorted({c for c in candidates if len(c) > 1})
         plan = look_plan(int(n_max), alpha, len(singles) + len(masses), bound=bound,
                          threshold=float(norm.cdf(eps / self.sigma)), first_look=first_look,
                          batch_size=int(batch_size), futility_level=futility_level)
+        counts, best, reason = self._sequential_looks(x, eps, batch_size, seed, plan,
+                                                      candidates, singles, masses)
+        return _sequential_decision(best, reason, candidates, counts, top, plan, eps, alpha,
+                                    selection_n)
+
+    def _decide_top(self, x: torch.Tensor, ranges: Ranges | None, batch_size: int,
+                    selection_n: int, selection_seed: int | None) -> int | None:
+        """The top label :meth:`decide`'s ranges are a function of: the most frequent label of
+        ``selection_n`` noisy samples, else the base model's label; None for a fixed list."""
+        if selection_n:
+            select_gen = make_generator(selection_seed, self.device)
+            return select_label(self.sample_counts(x, selection_n, batch_size, select_gen,
+                                                   selection=True))
+        if ranges is None or callable(ranges):
+            return self.base_label(x)
+        return None
+
+    def _sequential_looks(self, x: torch.Tensor, eps: float, batch_size: int,
+                          seed: int | None, plan, candidates: list[tuple[int, ...]],
+                          singles: list[int], masses: list[tuple[int, ...]]
+                          ) -> tuple[np.ndarray, tuple | None, str]:
+        """Estimation samples drawn look by look until :meth:`decide`'s answer is known:
+        ``(counts, best, reason)``, best = (T's index, R, a, L_a, L_T) or None."""
         k = self.num_classes
         counts = np.zeros(k, dtype=np.int64)
         gen = make_generator(seed, self.device)
@@ -302,37 +309,33 @@ class SmoothedClassifier(SmoothedModel):
                     counts += torch.bincount(out.argmax(dim=1), minlength=k).cpu().numpy()
                 bounds = {(a,): plan.bounds(int(counts[a]), look) for a in singles}
                 bounds |= {c: plan.bounds(int(counts[list(c)].sum()), look) for c in masses}
-                live = None  # best: kept across looks (every look's bounds hold at once)
-                for i, c in enumerate(candidates):
-                    low_t, up_t = bounds[c]
-                    for a in (t for t in c if t in singles):
-                        low_a, up_a = bounds[(a,)]
-                        radius = sequential_radius(low_a, low_t, self.sigma, len(c))
-                        if radius > eps and (best is None or (i, -radius) < (best[0],
-                                                                              -best[1])):
-                            best = (i, radius, a, low_a, low_t)
-                        reachable = sequential_radius(plan.reachable_low(up_a),
-                                                      plan.reachable_low(up_t), self.sigma,
-                                                      len(c))
-                        if reachable > eps and live is None:
-                            live = i
+                best, live = self._scan_look(bounds, plan, candidates, singles, eps, best)
                 if live is None:
                     reason = "futile"
                     break
                 if best is not None and best[0] <= live:
                     break
-        samples = int(counts.sum()) + int(selection_n)
-        common = dict(samples=samples, selection_samples=int(selection_n), eps=float(eps),
-                      alpha=float(alpha), bound=plan.name, counts=counts)
-        if best is None:
-            return SequentialDecision(certified=False, labels=(), radius=0.0, p_low_top=0.0,
-                                      p_low_range=0.0, reason=reason,
-                                      top_label=int(top if top is not None
-                                                    else select_label(counts)), **common)
-        i, radius, a, low_a, low_t = best
-        return SequentialDecision(certified=True, labels=candidates[i], radius=radius,
-                                  top_label=a, p_low_top=low_a, p_low_range=low_t,
-                                  reason="certified", **common)
+        return counts, best, reason
+
+    def _scan_look(self, bounds: dict, plan, candidates: list[tuple[int, ...]],
+                   singles: list[int], eps: float, best: tuple | None
+                   ) -> tuple[tuple | None, int | None]:
+        """One look over the candidates, most preferred first: ``(best, live)``, the best
+        certified candidate so far (kept across looks: every look's bounds hold at once) and
+        the index of the most preferred candidate not yet ruled out (None: every one is)."""
+        live = None
+        for i, c in enumerate(candidates):
+            low_t, up_t = bounds[c]
+            for a in (t for t in c if t in singles):
+                low_a, up_a = bounds[(a,)]
+                radius = sequential_radius(low_a, low_t, self.sigma, len(c))
+                if radius > eps and (best is None or (i, -radius) < (best[0], -best[1])):
+                    best = (i, radius, a, low_a, low_t)
+                reachable = sequential_radius(plan.reachable_low(up_a),
+                                              plan.reachable_low(up_t), self.sigma, len(c))
+                if reachable > eps and live is None:
+                    live = i
+        return best, live
 
     def base_label(self, x: torch.Tensor) -> int:
         """The base model's label on the frame itself (no noise), as evaluated."""
@@ -380,6 +383,40 @@ class SmoothedClassifier(SmoothedModel):
 
     def _check_enough_samples(self, n: int, alpha: float) -> None:
         check_enough_samples(n, alpha, self.num_classes)
+
+
+def _check_decide_arguments(eps: float, alpha: float, n_max: int, batch_size: int,
+                            ranges, selection_n: int) -> None:
+    """The checks of :meth:`SmoothedClassifier.decide`'s arguments, in order."""
+    check_alpha(alpha)
+    check_count(n_max, "n_max")
+    check_count(batch_size, "batch_size")
+    if not (math.isfinite(eps) and eps >= 0):
+        raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
+    if isinstance(selection_n, bool) or not isinstance(selection_n, (int, np.integer)) \
+            or selection_n < 0:
+        raise CertificationError(f"selection_n = {selection_n!r} must be an integer >= 0")
+    if selection_n and not (ranges is None or callable(ranges)):
+        raise CertificationError("selection_n chooses a top label: give ranges as a "
+                                 "function of that label (or None), not a fixed list")
+
+
+def _sequential_decision(best: tuple | None, reason: str, candidates: list[tuple[int, ...]],
+                         counts: np.ndarray, top: int | None, plan, eps: float, alpha: float,
+                         selection_n: int) -> SequentialDecision:
+    """:meth:`SmoothedClassifier.decide`'s answer from the looks' outcome."""
+    samples = int(counts.sum()) + int(selection_n)
+    common = dict(samples=samples, selection_samples=int(selection_n), eps=float(eps),
+                  alpha=float(alpha), bound=plan.name, counts=counts)
+    if best is None:
+        return SequentialDecision(certified=False, labels=(), radius=0.0, p_low_top=0.0,
+                                  p_low_range=0.0, reason=reason,
+                                  top_label=int(top if top is not None
+                                                else select_label(counts)), **common)
+    i, radius, a, low_a, low_t = best
+    return SequentialDecision(certified=True, labels=candidates[i], radius=radius,
+                              top_label=a, p_low_top=low_a, p_low_range=low_t,
+                              reason="certified", **common)
 
 
 def select_label(counts: np.ndarray) -> int:

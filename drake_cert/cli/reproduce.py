@@ -123,33 +123,25 @@ def log_run(path, entry: dict) -> list[dict]:
 
 
 def run(args) -> int:
-    import dataclasses
-    import shutil
     from pathlib import Path
 
-    from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.errors import ConfigError
-    from drake_cert.experiments import claims, outputs, tables
     from drake_cert.experiments.executors import make_executor
-    from drake_cert.experiments.reproduce import run_reproduction, tasks_for
     from drake_cert.experiments.run_store import RunStore
     from drake_cert.io import check_writable, provenance
     from drake_cert.synthesis.table import synthesize_table
 
-    config = build_config(args)
+    config = _resolved_config(args)
     out = Path(args.out)
-    if args.from_store and args.precision == "auto":
-        # Nothing is computed: "auto" means the precision the stored frames were made in.
-        made_in = RunStore(out / "store").precisions()
-        if made_in and config.precision not in made_in:
-            config = dataclasses.replace(config, precision=made_in[-1])
     if args.budget_min is not None and not args.budget_min > 0:
         raise ConfigError(f"--budget-min = {args.budget_min} must be a positive number")
     if args.from_store and args.fresh:
         raise ConfigError("--from-store and --fresh exclude each other")
     check_writable(out / "results.csv", "--out")
     if args.fresh and (out / "store").exists():
+        import shutil
+
         shutil.rmtree(out / "store")
     executor = make_executor(args.executor, args.workers, args.address)
     started = provenance(seed=config.seed)  # the revision and time the run started with
@@ -157,24 +149,9 @@ def run(args) -> int:
     deadline = None if args.budget_min is None else start + 60.0 * args.budget_min
     stop = (lambda: True) if args.from_store else None if deadline is None \
         else (lambda: time.perf_counter() > deadline)
-    bars = []
-
-    def progress(desc, total):
-        # One phase at a time: closing the previous bar here stops its clock at the phase's end
-        # (closed only at the end of the run, every bar would show the whole run's time).
-        if bars:
-            bars[-1].close()
-        bars.append(progress_bar(total=total, desc=desc, unit="task"))
-        return bars[-1].update
-
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())  # once
     store = RunStore(out / "store")
-    try:
-        rows = run_reproduction(config, executor, progress=progress, store=store, stop=stop,
-                                designs=designs)
-    finally:
-        for b in bars:
-            b.close()
+    rows = _reproduce_with_progress(config, executor, store, stop, designs)
     wall = time.perf_counter() - start
     done = {p: len({r["position"] for r in rows if r["preset"] == p}) for p in config.presets}
     complete = all(k == config.frames for k in done.values())
@@ -186,6 +163,58 @@ def run(args) -> int:
         print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "frames_done": done,
                           "complete": False}))
         return 0
+    _write_reproduction(args, config, out, store, designs, rows, started, wall, done, complete)
+    return 0
+
+
+def _resolved_config(args):
+    """The run's configuration; with --from-store, "auto" precision is the stored frames'."""
+    import dataclasses
+    from pathlib import Path
+
+    from drake_cert.experiments.run_store import RunStore
+
+    config = build_config(args)
+    if args.from_store and args.precision == "auto":
+        # Nothing is computed: "auto" means the precision the stored frames were made in.
+        made_in = RunStore(Path(args.out) / "store").precisions()
+        if made_in and config.precision not in made_in:
+            config = dataclasses.replace(config, precision=made_in[-1])
+    return config
+
+
+def _reproduce_with_progress(config, executor, store, stop, designs) -> list[dict]:
+    """The reproduction's frame rows, with one progress bar per phase."""
+    from drake_cert.cli.progress import progress_bar
+    from drake_cert.experiments.reproduce import run_reproduction
+
+    bars = []
+
+    def progress(desc, total):
+        # One phase at a time: closing the previous bar here stops its clock at the phase's end
+        # (closed only at the end of the run, every bar would show the whole run's time).
+        if bars:
+            bars[-1].close()
+        bars.append(progress_bar(total=total, desc=desc, unit="task"))
+        return bars[-1].update
+
+    try:
+        return run_reproduction(config, executor, progress=progress, store=store, stop=stop,
+                                designs=designs)
+    finally:
+        for b in bars:
+            b.close()
+
+
+def _write_reproduction(args, config, out, store, designs, rows, started, wall, done,
+                        complete) -> None:
+    """Log the invocation, write the tables, claims and meta under ``out`` and print the
+    summary line."""
+    from drake_cert.config import load_conditions
+    from drake_cert.experiments import claims, outputs, tables
+    from drake_cert.experiments.reproduce import tasks_for
+    from drake_cert.io import provenance
+
     runs = log_run(out / "store" / "runs.json", dict(
         started, wall_s=round(wall, 1), executor=args.executor,
         workers=args.workers if args.executor == "ray" else 1, frames_done=done))
@@ -205,4 +234,3 @@ def run(args) -> int:
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
                       "claims_hold": holds, "files": [str(p) for p in written]}))
-    return 0

@@ -47,59 +47,90 @@ def _velocity(rows: list[dict]) -> float:
 
 
 
+def _cell(mine: list[dict], pipeline: str, attack: str, eps=None, sigma=None) -> list[dict]:
+    """The rows of one cell of a preset (eps and sigma: any, when None)."""
+    return [r for r in mine if r["pipeline"] == pipeline and r["attack"] == attack
+            and (eps is None or r["eps"] == eps) and (sigma is None or r["sigma"] == sigma)]
+
+
+def _speed_kept(mine: list[dict], pipeline: str, main_eps: float) -> dict:
+    """Per sigma of ``pipeline`` (ascending): clean and EA velocity at the main budget and
+    their ratio."""
+    kept = {}
+    for s in sorted({r["sigma"] for r in mine if r["pipeline"] == pipeline}):
+        clean, ea = _velocity(_cell(mine, pipeline, "none", main_eps, s)), _velocity(
+            _cell(mine, pipeline, "ea", main_eps, s))
+        kept[s] = dict(clean_mps=clean, ea_mps=ea, kept=ea / clean if clean > 0 else
+                       float("nan"))
+    return kept
+
+
+def _f_claims(mine: list[dict]) -> tuple[float, dict, dict]:
+    """Claims 1 and 2 of one preset: f's clean velocity, and per budget f's SA instability
+    share and EA velocity."""
+    budgets = sorted({r["eps"] for r in mine if r["pipeline"] == "f" and r["attack"] != "none"})
+    f_clean = _velocity(_cell(mine, "f", "none"))
+    f_sa = {e: _share(sum(r["left_lane"] for r in _cell(mine, "f", "sa", e)),
+                      len(_cell(mine, "f", "sa", e)))
+            for e in budgets}
+    f_ea = {e: _velocity(_cell(mine, "f", "ea", e)) for e in budgets}
+    return f_clean, f_sa, f_ea
+
+
+def _g_certified(mine: list[dict], main_eps: float) -> tuple[list, list, list, list]:
+    """Claim 3 of one preset: g's certified attacked episodes, those whose frame g labels right
+    when clean, those whose certified range holds the true label, and the departures among
+    them, frame by frame."""
+    # g's label on the clean frame at each sigma (the main-budget clean cell where the
+    # sweep's eps = 0 cell repeats it)
+    clean_g = {(r["position"], r["sigma"]): r["predicted"]
+               for r in sorted(_cell(mine, "g", "none"), key=lambda r: r["eps"] == main_eps)}
+    certified = [r for r in mine if r["pipeline"] == "g" and r["attack"] != "none"
+                 and r["certified"]]
+    right = [r for r in certified
+             if clean_g.get((r["position"], r["sigma"])) == r["true_label"]]
+    holds_truth = [r for r in certified if holds_true_label(r)]
+    departures = [dict(frame=r["frame"], true_label=r["true_label"], sigma=r["sigma"],
+                       attack=r["attack"], eps=r["eps"], predicted=r["predicted"],
+                       clean_prediction=clean_g.get((r["position"], r["sigma"])),
+                       design=r["design_labels"], velocity_mps=r["velocity_mps"],
+                       interval_covers=r["interval_covers"],
+                       range_holds_true_label=holds_true_label(r))
+                  for r in certified if r["left_lane"]]
+    return certified, right, holds_truth, departures
+
+
+def _conformal_claims(mine: list[dict], main_eps: float) -> tuple[dict, dict]:
+    """Claims 3 and 4 for g_conformal (the same certificates read by the robust conformal
+    interval): the figures and the claims' verdicts, both empty without g_conformal rows."""
+    conformal = [r for r in mine if r["pipeline"] == "g_conformal" and r["attack"] != "none"
+                 and r["certified"]]
+    conformal_kept = {str(s): v for s, v in _speed_kept(mine, "g_conformal", main_eps).items()}
+    if not conformal_kept:
+        return {}, {}
+    figures = dict(
+        g_conformal_inside_certificate=_share(sum(r["left_lane"] for r in conformal),
+                                              len(conformal)),
+        g_conformal_certified_range_misses_true_label=_share(
+            sum(not holds_true_label(r) for r in conformal), len(conformal)),
+        g_conformal_ea_speed_kept=conformal_kept)
+    holds = dict(
+        g_conformal_zero_instability_inside_certificates=not any(
+            r["left_lane"] for r in conformal),
+        g_conformal_keeps_80pct_speed_under_ea=all(
+            v["kept"] >= SPEED_KEPT for v in conformal_kept.values()))
+    return figures, holds
+
+
 def check_claims(rows: list[dict], main_eps: float) -> dict:
     """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`)."""
     out = {}
     for preset in dict.fromkeys(r["preset"] for r in rows):
         mine = [r for r in rows if r["preset"] == preset]
-
-        def cell(pipeline, attack, eps=None, sigma=None, mine=mine):
-            return [r for r in mine if r["pipeline"] == pipeline and r["attack"] == attack
-                    and (eps is None or r["eps"] == eps) and (sigma is None or r["sigma"] == sigma)]
-
-        budgets = sorted({r["eps"] for r in mine if r["pipeline"] == "f" and r["attack"] != "none"})
-        f_clean = _velocity(cell("f", "none"))
-        f_sa = {e: _share(sum(r["left_lane"] for r in cell("f", "sa", e)), len(cell("f", "sa", e)))
-                for e in budgets}
-        f_ea = {e: _velocity(cell("f", "ea", e)) for e in budgets}
-        # g's label on the clean frame at each sigma (the main-budget clean cell where the
-        # sweep's eps = 0 cell repeats it)
-        clean_g = {(r["position"], r["sigma"]): r["predicted"]
-                   for r in sorted(cell("g", "none"), key=lambda r: r["eps"] == main_eps)}
-        certified = [r for r in mine if r["pipeline"] == "g" and r["attack"] != "none"
-                     and r["certified"]]
-        right = [r for r in certified
-                 if clean_g.get((r["position"], r["sigma"])) == r["true_label"]]
-        holds_truth = [r for r in certified if holds_true_label(r)]
-        departures = [dict(frame=r["frame"], true_label=r["true_label"], sigma=r["sigma"],
-                           attack=r["attack"], eps=r["eps"], predicted=r["predicted"],
-                           clean_prediction=clean_g.get((r["position"], r["sigma"])),
-                           design=r["design_labels"], velocity_mps=r["velocity_mps"],
-                           interval_covers=r["interval_covers"],
-                           range_holds_true_label=holds_true_label(r))
-                      for r in certified if r["left_lane"]]
-        sigmas = sorted({r["sigma"] for r in mine if r["pipeline"] == "g"})
-        kept = {}
-        for s in sigmas:
-            clean, ea = _velocity(cell("g", "none", main_eps, s)), _velocity(
-                cell("g", "ea", main_eps, s))
-            kept[s] = dict(clean_mps=clean, ea_mps=ea, kept=ea / clean if clean > 0 else
-                           float("nan"))
-        # g_conformal: the same certificates read by the robust conformal interval
-        conformal = [r for r in mine if r["pipeline"] == "g_conformal" and r["attack"] != "none"
-                     and r["certified"]]
-        conformal_kept = {}
-        for s in sorted({r["sigma"] for r in mine if r["pipeline"] == "g_conformal"}):
-            clean, ea = _velocity(cell("g_conformal", "none", main_eps, s)), _velocity(
-                cell("g_conformal", "ea", main_eps, s))
-            conformal_kept[str(s)] = dict(clean_mps=clean, ea_mps=ea,
-                                          kept=ea / clean if clean > 0 else float("nan"))
-        with_conformal = {} if not conformal_kept else dict(
-            g_conformal_inside_certificate=_share(sum(r["left_lane"] for r in conformal),
-                                                  len(conformal)),
-            g_conformal_certified_range_misses_true_label=_share(
-                sum(not holds_true_label(r) for r in conformal), len(conformal)),
-            g_conformal_ea_speed_kept=conformal_kept)
+        f_clean, f_sa, f_ea = _f_claims(mine)
+        certified, right, holds_truth, departures = _g_certified(mine, main_eps)
+        kept = _speed_kept(mine, "g", main_eps)
+        with_conformal, conformal_holds = _conformal_claims(mine, main_eps)
         out[preset] = dict(
             frames=len({r["position"] for r in mine}),
             f_clean_velocity_mps=f_clean,
@@ -125,11 +156,7 @@ def check_claims(rows: list[dict], main_eps: float) -> dict:
                     r["left_lane"] for r in holds_truth),
                 g_keeps_80pct_speed_under_ea=all(v["kept"] >= SPEED_KEPT for v in kept.values()),
                 # claims 3 and 4 for the same certificates read by the robust conformal interval
-                **({} if not conformal_kept else dict(
-                    g_conformal_zero_instability_inside_certificates=not any(
-                        r["left_lane"] for r in conformal),
-                    g_conformal_keeps_80pct_speed_under_ea=all(
-                        v["kept"] >= SPEED_KEPT for v in conformal_kept.values()))),
+                **conformal_holds,
             ))
     return out
 

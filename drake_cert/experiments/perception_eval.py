@@ -186,15 +186,8 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
         check_enough_samples(settings.n, settings.alpha, k)
     adversarial = _attacked(model, images, settings)
     attacked = adversarial is not images
-    records = []
     if settings.sigma == 0:
-        with torch.inference_mode():
-            clean_pred = model(images).argmax(1)
-            adv_pred = model(adversarial).argmax(1) if attacked else clean_pred
-        for i in range(len(images)):
-            records.append({"label": int(labels[i]), "clean_prediction": int(clean_pred[i]),
-                            "prediction": int(adv_pred[i]),
-                            "stiffness_n_per_rad": float(stiffness[i])})
+        records = _base_records(model, images, adversarial, attacked, labels, stiffness)
         return records, summarize_classification(records, settings)
     safe = {i: [label_names.index(n) for n in table.safe_set(settings.preset, name)]
             for i, name in enumerate(label_names)}
@@ -205,6 +198,7 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
         if calibration is None:
             raise CertificationError("the conformal interval needs calibration frames")
         robust = calibrate_classifier(smooth, calibration, settings, progress)
+    records = []
     for i in _progress(progress, range(len(images))):
         st = settings.frame_streams(i)
         clean = clean_cache.get(i) if clean_cache is not None else None
@@ -218,33 +212,52 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
                               settings.batch_size, safe_set=safe,
                               seed=st["attacked_estimation"],
                               selection_seed=st["attacked_selection"]) if attacked else clean
-        rt = runtime_classification_interval(seen, table, settings.preset, settings.eps,
-                                             label_names)
-        y = float(stiffness[i])
-        extra = {}
-        if robust is not None:
-            ci = conformal_interval(seen, robust, table, settings.preset, settings.eps,
-                                    label_names)
-            extra = {"conformal_label_set": list(ci.label_set),
-                     "conformal_interval_n_per_rad": list(ci.interval),
-                     "conformal_covered": bool(ci.stiffness_lo_n_per_rad <= y
-                                               <= ci.stiffness_hi_n_per_rad)}
-        records.append(extra | {
-            "label": int(labels[i]), "stiffness_n_per_rad": y,
-            "clean_prediction": clean.label, "clean_radius": clean.radius,
-            "clean_radius_label": clean.radius_for([clean.top_label]) if not clean.abstained
-            else 0.0,
-            "prediction": seen.label, "radius": seen.radius,
-            "interval_labels": list(rt.labels), "interval_n_per_rad": list(rt.interval),
-            "interval_certified": rt.certified, "interval_radius": rt.radius,
-            "interval_holds_label": label_names[int(labels[i])] in rt.labels,
-            "covered": rt.stiffness_lo_n_per_rad <= y <= rt.stiffness_hi_n_per_rad,
-        })
+        records.append(_certified_record(clean, seen, int(labels[i]), float(stiffness[i]),
+                                         robust, table, settings, label_names))
     summary = summarize_classification(records, settings)
     summary["compile_seconds"] = smooth.compile_seconds
     if robust is not None:
         summary.update(summarize_conformal(records, robust))
     return records, summary
+
+
+def _base_records(model: torch.nn.Module, images: torch.Tensor, adversarial: torch.Tensor,
+                  attacked: bool, labels: torch.Tensor, stiffness: torch.Tensor) -> list[dict]:
+    """:func:`certify_classifier`'s records at sigma = 0: the base model's labels, clean and
+    (when attacked) on the attacked frames."""
+    with torch.inference_mode():
+        clean_pred = model(images).argmax(1)
+        adv_pred = model(adversarial).argmax(1) if attacked else clean_pred
+    return [{"label": int(labels[i]), "clean_prediction": int(clean_pred[i]),
+             "prediction": int(adv_pred[i]), "stiffness_n_per_rad": float(stiffness[i])}
+            for i in range(len(images))]
+
+
+def _certified_record(clean, seen, label: int, y: float, robust, table: ConditionsTable,
+                      settings: CertifySettings, label_names: list[str]) -> dict:
+    """:func:`certify_classifier`'s record of one frame of true ``label`` and stiffness ``y``
+    from its clean and seen (attacked, or clean) certificates."""
+    rt = runtime_classification_interval(seen, table, settings.preset, settings.eps,
+                                         label_names)
+    extra = {}
+    if robust is not None:
+        ci = conformal_interval(seen, robust, table, settings.preset, settings.eps,
+                                label_names)
+        extra = {"conformal_label_set": list(ci.label_set),
+                 "conformal_interval_n_per_rad": list(ci.interval),
+                 "conformal_covered": bool(ci.stiffness_lo_n_per_rad <= y
+                                           <= ci.stiffness_hi_n_per_rad)}
+    return extra | {
+        "label": label, "stiffness_n_per_rad": y,
+        "clean_prediction": clean.label, "clean_radius": clean.radius,
+        "clean_radius_label": clean.radius_for([clean.top_label]) if not clean.abstained
+        else 0.0,
+        "prediction": seen.label, "radius": seen.radius,
+        "interval_labels": list(rt.labels), "interval_n_per_rad": list(rt.interval),
+        "interval_certified": rt.certified, "interval_radius": rt.radius,
+        "interval_holds_label": label_names[label] in rt.labels,
+        "covered": rt.stiffness_lo_n_per_rad <= y <= rt.stiffness_hi_n_per_rad,
+    }
 
 
 def calibrate_classifier(smooth: SmoothedClassifier, calibration: tuple,

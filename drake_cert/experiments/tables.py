@@ -256,39 +256,69 @@ def markdown(summary: list[dict], config, conditions) -> str:
     """All tables as Markdown: the paper's number in parentheses where it is the same metric,
     in its own row or column (named "paper's ...") where it is not."""
     presets = list(config.presets)
-    eps = config.eps
     lines = _header(summary, config) + _stiffness_table(presets, conditions)
-    head = "| | " + " | ".join(presets) + " |\n|---|" + "---|" * len(presets)
-
-    def ours_row(title, metric, pipeline, attack, e, paper_table):
-        return "| " + title + " | " + " | ".join(_ours_vs_paper(
-            _cell(summary, preset=p, pipeline=pipeline, attack=attack, eps=e),
-            PAPER.get((paper_table, p)), metric) for p in presets) + " |"
-
-    def paper_row(title, paper_table, key):
-        return f"| {title} | " + " | ".join(_paper(PAPER.get((paper_table, p)), key)
-                                            for p in presets) + " |"
-
     clean = {p: _clean_eps(summary, p) for p in presets}
-    lines += ["", "### Non-robust classifier f, clean", "", head]
+    lines += _f_tables(summary, presets, config.eps, clean)
+    lines += _g_tables(summary, config, presets)
+    lines += _interval_table(summary, config, presets, clean)
+    if config.regression:
+        lines += _regression_tables(summary, config, presets, clean)
+    lines += _sweep_table(summary, config, presets)
+    return "\n".join(lines) + "\n"
+
+
+def _preset_head(presets: list[str]) -> str:
+    """The head of a table with the presets as columns."""
+    return "| | " + " | ".join(presets) + " |\n|---|" + "---|" * len(presets)
+
+
+def _ours_row(summary: list[dict], presets: list[str], title: str, metric: str, pipeline: str,
+              attack: str, e: float, paper_table: str | None) -> str:
+    """A row of ours per preset, with the paper's number where it is the same metric."""
+    return "| " + title + " | " + " | ".join(_ours_vs_paper(
+        _cell(summary, preset=p, pipeline=pipeline, attack=attack, eps=e),
+        PAPER.get((paper_table, p)), metric) for p in presets) + " |"
+
+
+def _paper_row(presets: list[str], title: str, paper_table: str, key: str) -> str:
+    """A row of the paper's numbers per preset."""
+    return f"| {title} | " + " | ".join(_paper(PAPER.get((paper_table, p)), key)
+                                        for p in presets) + " |"
+
+
+def _f_tables(summary: list[dict], presets: list[str], eps: float, clean: dict) -> list[str]:
+    """The non-robust classifier f: clean, and under PGD at ``eps``."""
+    head = _preset_head(presets)
+    lines = ["", "### Non-robust classifier f, clean", "", head]
     lines += ["| accuracy (%) | " + " | ".join(_ours_vs_paper(
         _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
         PAPER.get(("f_clean", p)), "accuracy") for p in presets) + " |",
         "| instability (%) | " + " | ".join(_num(_safe(
             _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
             "instability_pct")) for p in presets) + " |",
-        paper_row("paper's instability", "f_clean", "instability"),
+        _paper_row(presets, "paper's instability", "f_clean", "instability"),
         "| velocity (m/s) | " + " | ".join(_ours_vs_paper(
             _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
             PAPER.get(("f_clean", p)), "velocity_mps") for p in presets) + " |"]
     lines += ["", f"### f under PGD (eps = {eps})", "", head,
-              ours_row("accuracy under SA (%)", "accuracy", "f", "sa", eps, None),
-              ours_row("accuracy under EA (%)", "accuracy", "f", "ea", eps, None),
-              paper_row("paper's accuracy under PGD (%, attack objective not stated)",
-                        "f_attack", "accuracy"),
-              ours_row("instability under SA (%)", "instability_pct", "f", "sa", eps, None),
-              paper_row("paper's instability under SA", "f_attack", "instability"),
-              ours_row("velocity under EA (m/s)", "velocity_mps", "f", "ea", eps, "f_attack")]
+              _ours_row(summary, presets, "accuracy under SA (%)", "accuracy", "f", "sa", eps,
+                        None),
+              _ours_row(summary, presets, "accuracy under EA (%)", "accuracy", "f", "ea", eps,
+                        None),
+              _paper_row(presets, "paper's accuracy under PGD (%, attack objective not stated)",
+                         "f_attack", "accuracy"),
+              _ours_row(summary, presets, "instability under SA (%)", "instability_pct", "f",
+                        "sa", eps, None),
+              _paper_row(presets, "paper's instability under SA", "f_attack", "instability"),
+              _ours_row(summary, presets, "velocity under EA (m/s)", "velocity_mps", "f", "ea",
+                        eps, "f_attack")]
+    return lines
+
+
+def _g_tables(summary: list[dict], config, presets: list[str]) -> list[str]:
+    """The smoothed classifier g (and g_conformal) under SA and under EA, per sigma."""
+    eps = config.eps
+    lines = []
     for attack, columns, title in (
             ("sa", (("instability_pct", "instability (%)"), ("certificate", "label-range radius"),
                     ("paper:instability", "paper's instability"),
@@ -307,69 +337,87 @@ def markdown(summary: list[dict], config, conditions) -> str:
                 cells += [_paper(paper, m.split(":")[1]) if m.startswith("paper:")
                           else _ours_vs_paper(ours, paper, m) for m, _ in columns]
             lines.append(f"| {_g_row_name(s, pipe, summary)} | " + " | ".join(cells) + " |")
-    lines += ["", f"### Run-time interval of g: coverage of the true stiffness (%), eps = {eps}",
-              "", "| sigma | attack | " + " | ".join(presets) + " |",
-              "|---|---|" + "---|" * len(presets)]
+    return lines
+
+
+def _interval_table(summary: list[dict], config, presets: list[str], clean: dict) -> list[str]:
+    """Coverage of the true stiffness by g's run-time interval, per sigma and attack."""
+    eps = config.eps
+    lines = ["", f"### Run-time interval of g: coverage of the true stiffness (%), eps = {eps}",
+             "", "| sigma | attack | " + " | ".join(presets) + " |",
+             "|---|---|" + "---|" * len(presets)]
     for s, pipe in ((s, pipe) for s in config.sigmas for pipe in _g_pipelines(summary)):
         for attack in ("none", "sa", "ea"):
             lines.append(f"| {_g_row_name(s, pipe, summary)} | {attack} | " + " | ".join(
                 _num(_safe(_cell(summary, preset=p, pipeline=pipe, sigma=s, attack=attack,
                                  eps=eps if attack != "none" else clean[p]),
                            "interval_coverage"), 1) for p in presets) + " |")
-    if config.regression:
-        lines += ["", f"### Regression: non-robust f_reg (clean, and PGD at eps = {eps})", "",
-                  head]
-        for title, metric, attack, paper in (
-                ("MSE clean ((kN/rad)^2)", "mse", "none", None),
-                ("paper's MSE clean (unit not stated)", "paper:mse", None, "f_reg_clean"),
-                ("MSE under SA ((kN/rad)^2)", "mse", "sa", None),
-                ("paper's MSE under PGD (unit not stated)", "paper:mse", None, "f_reg_attack"),
-                ("velocity clean (m/s)", "velocity_mps", "none", "f_reg_clean"),
-                ("velocity under EA (m/s)", "velocity_mps", "ea", "f_reg_attack"),
-                ("instability under SA (%)", "instability_pct", "sa", None),
-                ("paper's instability under SA", "paper:instability", None, "f_reg_attack")):
-            if metric.startswith("paper:"):
-                lines.append(paper_row(title, paper, metric.split(":")[1]))
-                continue
-            lines.append("| " + title + " | " + " | ".join(_ours_vs_paper(
-                _cell(summary, preset=p, pipeline="f_reg", attack=attack,
-                      eps=eps if attack != "none" else clean[p]),
-                PAPER.get((paper, p)), metric) for p in presets) + " |")
-        lines += ["", f"### Median-smoothed regressor h (eps = {eps}): instability under SA, "
-                  "velocity under EA, interval coverage under SA", "",
-                  "| sigma | " + " | ".join(f"{p} {m}" for p in presets
-                                           for m in ("instab. (%)", "vel. (m/s)", "cover. (%)",
-                                                     "paper's instab.")) + " |",
-                  "|---|" + "---|" * (4 * len(presets))]
-        for s in config.sigmas:
-            cells = []
-            for p in presets:
-                sa = _cell(summary, preset=p, pipeline="h", sigma=s, attack="sa", eps=eps)
-                ea = _cell(summary, preset=p, pipeline="h", sigma=s, attack="ea", eps=eps)
-                paper = PAPER.get(("h_sa", p, s))
-                cells += [_ours_vs_paper(sa, paper, "instability_pct"),
-                          _ours_vs_paper(ea, paper, "velocity_mps"),
-                          _num(_safe(sa, "interval_coverage"), 1),
-                          _paper(paper, "instability")]
-            lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _regression_tables(summary: list[dict], config, presets: list[str],
+                       clean: dict) -> list[str]:
+    """The non-robust regressor f_reg, and the median-smoothed regressor h per sigma."""
+    eps = config.eps
+    lines = ["", f"### Regression: non-robust f_reg (clean, and PGD at eps = {eps})", "",
+             _preset_head(presets)]
+    for title, metric, attack, paper in (
+            ("MSE clean ((kN/rad)^2)", "mse", "none", None),
+            ("paper's MSE clean (unit not stated)", "paper:mse", None, "f_reg_clean"),
+            ("MSE under SA ((kN/rad)^2)", "mse", "sa", None),
+            ("paper's MSE under PGD (unit not stated)", "paper:mse", None, "f_reg_attack"),
+            ("velocity clean (m/s)", "velocity_mps", "none", "f_reg_clean"),
+            ("velocity under EA (m/s)", "velocity_mps", "ea", "f_reg_attack"),
+            ("instability under SA (%)", "instability_pct", "sa", None),
+            ("paper's instability under SA", "paper:instability", None, "f_reg_attack")):
+        if metric.startswith("paper:"):
+            lines.append(_paper_row(presets, title, paper, metric.split(":")[1]))
+            continue
+        lines.append("| " + title + " | " + " | ".join(_ours_vs_paper(
+            _cell(summary, preset=p, pipeline="f_reg", attack=attack,
+                  eps=eps if attack != "none" else clean[p]),
+            PAPER.get((paper, p)), metric) for p in presets) + " |")
+    lines += ["", f"### Median-smoothed regressor h (eps = {eps}): instability under SA, "
+              "velocity under EA, interval coverage under SA", "",
+              "| sigma | " + " | ".join(f"{p} {m}" for p in presets
+                                       for m in ("instab. (%)", "vel. (m/s)", "cover. (%)",
+                                                 "paper's instab.")) + " |",
+              "|---|" + "---|" * (4 * len(presets))]
+    for s in config.sigmas:
+        cells = []
+        for p in presets:
+            sa = _cell(summary, preset=p, pipeline="h", sigma=s, attack="sa", eps=eps)
+            ea = _cell(summary, preset=p, pipeline="h", sigma=s, attack="ea", eps=eps)
+            paper = PAPER.get(("h_sa", p, s))
+            cells += [_ours_vs_paper(sa, paper, "instability_pct"),
+                      _ours_vs_paper(ea, paper, "velocity_mps"),
+                      _num(_safe(sa, "interval_coverage"), 1),
+                      _paper(paper, "instability")]
+        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+    return lines
+
+
+def _sweep_table(summary: list[dict], config, presets: list[str]) -> list[str]:
+    """The budget sweep of f and g at the sweep's sigma, when the run has several budgets."""
     sweep = [s for s in summary if s["task"] == "classify" and s["attack"] != "none"
              and (s["pipeline"] == "f" or s["sigma"] == config.sweep_sigma)]
-    if len({s["eps"] for s in sweep}) > 1:
-        lines += ["", f"### Budget sweep (f and g at sigma = {config.sweep_sigma})", "",
-                  "| preset | eps | f instab. SA (%) | g instab. SA (%) | g certified SA (%) | "
-                  "f vel. EA (m/s) | g vel. EA (m/s) | g certified EA (%) |", "|---" * 8 + "|"]
-        for p in presets:
-            for e in sorted({s["eps"] for s in sweep}):
-                def get(pipe, attack, metric, p=p, e=e):
-                    c = _cell(summary, preset=p, pipeline=pipe, attack=attack, eps=e,
-                              sigma=0.0 if pipe == "f" else config.sweep_sigma)
-                    return _num(_safe(c, metric))
-                lines.append(f"| {p} | {e} | {get('f', 'sa', 'instability_pct')} | "
-                             f"{get('g', 'sa', 'instability_pct')} | "
-                             f"{get('g', 'sa', 'certified_pct')} | {get('f', 'ea', 'velocity_mps')}"
-                             f" | {get('g', 'ea', 'velocity_mps')} | "
-                             f"{get('g', 'ea', 'certified_pct')} |")
-    return "\n".join(lines) + "\n"
+    if len({s["eps"] for s in sweep}) <= 1:
+        return []
+    lines = ["", f"### Budget sweep (f and g at sigma = {config.sweep_sigma})", "",
+             "| preset | eps | f instab. SA (%) | g instab. SA (%) | g certified SA (%) | "
+             "f vel. EA (m/s) | g vel. EA (m/s) | g certified EA (%) |", "|---" * 8 + "|"]
+    for p in presets:
+        for e in sorted({s["eps"] for s in sweep}):
+            def get(pipe, attack, metric, p=p, e=e):
+                c = _cell(summary, preset=p, pipeline=pipe, attack=attack, eps=e,
+                          sigma=0.0 if pipe == "f" else config.sweep_sigma)
+                return _num(_safe(c, metric))
+            lines.append(f"| {p} | {e} | {get('f', 'sa', 'instability_pct')} | "
+                         f"{get('g', 'sa', 'instability_pct')} | "
+                         f"{get('g', 'sa', 'certified_pct')} | {get('f', 'ea', 'velocity_mps')}"
+                         f" | {get('g', 'ea', 'velocity_mps')} | "
+                         f"{get('g', 'ea', 'certified_pct')} |")
+    return lines
 
 
 def _g_pipelines(summary: list[dict]) -> list[str]:
