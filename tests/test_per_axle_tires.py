@@ -139,3 +139,14 @@ def test_every_label_range_of_a_published_vehicle_has_a_safe_speed_that_verify_a
                         CONDITIONS)
     report = verify_design_table(table, conditions=CONDITIONS)
     assert report.ok, report.to_dict()
+
+
+def test_a_drives_text_summary_names_both_axles_tires():
+    from drake_cert.cli.drive import format_summaries
+
+    summary = {"scenario": "dry_to_snow", "seed": 1, "pipeline": "certified",
+               "vehicle": dataclasses.asdict(ESCORT)}
+    text = format_summaries([summary])
+    assert "tire stiffness front x0.8311, rear x0.4869" in text
+    one = {**summary, "vehicle": dataclasses.asdict(load_vehicle())}
+    assert "tire stiffness x1\n" in format_summaries([one]) + "\n"

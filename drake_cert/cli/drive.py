@@ -266,9 +266,11 @@ def format_summaries(summaries: list[dict]) -> str:
     lines = [f"scenario {s0['scenario']} (seed {s0['seed']}{source})"]
     vehicle = s0.get("vehicle")
     if vehicle:
+        front = vehicle["tire_stiffness_scale"]
+        rear = vehicle.get("rear_tire_stiffness_scale") or front
+        tires = f"x{front:g}" if rear == front else f"front x{front:g}, rear x{rear:g}"
         lines.append(f"vehicle: mass {vehicle['mass_kg']:g} kg, lf {vehicle['lf_m']:g} m, "
-                     f"lr {vehicle['lr_m']:g} m, tire stiffness "
-                     f"x{vehicle['tire_stiffness_scale']:g}")
+                     f"lr {vehicle['lr_m']:g} m, tire stiffness {tires}")
     for key, fmt in keys:
         cells = []
         for s in summaries:
