@@ -23,8 +23,9 @@ matrix exists for it (measured): its families get none.
 
 Solved with cvxpy + Clarabel at the first feasible rate of :data:`LOOP_DECAY_TRIALS` (any
 lambda_z > 0 proves the claim; the stored rate is the least the matrix proves on the grid and
-on the grid shifted by half a step); :func:`check_loop_certificate` recomputes it on the
-shifted grid with generalized eigenvalues (no solver).
+on the grid shifted by half a step); verify rechecks it on a shifted grid with its own
+reference systems and generalized eigenvalues (no solver;
+:mod:`drake_cert.synthesis.verify_switching`).
 """
 
 import numpy as np
@@ -38,7 +39,6 @@ LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5
 LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
 COARSE_STRIDE = 4  # the first LMI uses every 4th grid speed (1 m/s)
 LOOP_ROUNDS = 4  # LMI solves with grid points added where the matrix falls short
-LOOP_TOLERANCE = 1.0e-6  # 1/s slack on the stored decay rate in the check
 
 
 def loop_speeds(design: ControllerDesign, speed_min_mps: float, offset: float = 0.0,
@@ -119,38 +119,3 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
         chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
     return None
-
-
-def check_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
-                           speed_min_mps: float, law: str, p_rows, decay_rate_per_s: float,
-                           name: str) -> list[str]:
-    """Failures of a stored loop certificate for ``designs`` (readable strings; [] if it
-    holds): P_z symmetric positive definite, and the stored rate reached within
-    :data:`LOOP_TOLERANCE` at both interval ends and every speed of the grid shifted by half a
-    step (different speeds from the synthesis's) and its ends."""
-    p = np.asarray(p_rows, dtype=float)
-    if p.shape != (5, 5) or not np.all(np.isfinite(p)):
-        return [f"{name}: loop_lyapunov_matrix must be a finite 5 x 5 matrix"]
-    if np.abs(p - p.T).max() > 1e-9 * max(np.abs(p).max(), 1.0):
-        return [f"{name}: loop_lyapunov_matrix is not symmetric"]
-    if np.linalg.eigvalsh(p).min() <= 0.0:
-        return [f"{name}: loop_lyapunov_matrix is not positive definite"]
-    for d in designs:
-        if not d.has_safe_speed:
-            continue
-        try:
-            mats = loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5)
-        except np.linalg.LinAlgError:  # e.g. a gain that leaves the nominal loop A_m singular
-            return [f"{name}: design {'+'.join(d.labels) or d.interval} has no reference loop "
-                    "to check the loop matrix on (its nominal loop A_m is singular)"]
-        for m, (c, v) in zip(mats, [(c, v) for c in d.certified_interval
-                                    for v in loop_speeds(d, speed_min_mps, 0.5)], strict=True):
-            if not np.all(np.isfinite(m)):
-                return [f"{name}: design {'+'.join(d.labels) or d.interval}'s reference loop "
-                        f"is not finite at C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-            rate = certified_rate(p, m)
-            if rate < decay_rate_per_s - LOOP_TOLERANCE:
-                return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
-                        f"{decay_rate_per_s}/s for design {'+'.join(d.labels) or d.interval} "
-                        f"at C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-    return []

@@ -26,7 +26,8 @@ certificate (:mod:`drake_cert.synthesis.loop_switching`, DESIGN 5.6 (b)). With j
 synthesized gains (:mod:`drake_cert.synthesis.joint_gains`, the default) "common" exists.
 The solve uses cvxpy + Clarabel (:func:`drake_cert.synthesis.gains.solve_sdp`); the stored
 claim is what the returned matrices prove (generalized eigenvalues), and
-:func:`check_switching_certificate` rechecks it without any solver.
+verify rechecks it its own way, without any solver
+(:mod:`drake_cert.synthesis.verify_switching`).
 """
 
 import dataclasses
@@ -53,10 +54,6 @@ DECAY_BISECTION_TOLERANCE = 1.0e-3  # 1/s, the common-P decay bisection
 DWELL_DECAY_FRACTIONS = (0.5, 0.75)  # of settings.decay_rate: lambda_0 candidates
 JUMP_START = 1.0e4  # first mu tried (the joint problem is feasible there in practice)
 JUMP_BISECTION_RATIO = 1.05  # mu bisection stops when hi / lo <= this
-JUMP_TOLERANCE = 1.0e-6  # relative slack on the stored mu in the check
-SWITCHING_TOLERANCE = 1.0e-6  # 1/s slack on the decay rate in the check (as the gain grid
-# check's drake_cert.synthesis.gains.GRID_CHECK_TOLERANCE; not imported: loading and checking a
-# certificate needs no cvxpy, only the solve does)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -440,188 +437,6 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
         out.update(chatter_bound_n0=0.0, lyapunov_growth_bound=1.0,
                    switching_certificate_met=True)
     return out
-
-
-# ----------------------------------------------------------------- check (no solver)
-
-def check_switching_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
-                                settings: Settings | SynthesisSettings,
-                                certificate: SwitchingCertificate) -> list[str]:
-    """Failures (readable strings) of ``certificate`` for the family ``designs``; [] if it holds.
-
-    No solver: every design of the family with a safe speed must be covered (a certificate
-    covering more designs than the table holds, e.g. a table cut down to a few designs, still
-    proves the switching among those present);
-    every stored matrix must be symmetric positive definite; at every corner of every covered
-    design's box the decay rate the matrix proves, ``-lambda_max(P^-1 sym(M' P + P M)) / 2``
-    (equivalently: ``P^-1/2 ((A - b k)' P + P (A - b k) + 2 lambda P) P^-1/2 <= 2 tol I``),
-    must reach the stored rate within :data:`SWITCHING_TOLERANCE` (1/s); for "dwell",
-    ``max lambda_max(P_n^-1 P_m)`` over modes may not exceed the stored mu, and the stored
-    dwell time may not be below ``ln(mu) / (2 lambda_0)``.
-    """
-    syn = _synthesis(settings)
-    name = f"switching certificate ({certificate.family})"
-    failures = []
-    covered = [d for d in designs if d.has_safe_speed]
-    keys = [design_key(d) for d in covered]
-    if certificate.method not in METHODS:
-        return [f"{name}: unknown method {certificate.method!r}"]
-    missing = [k for k in keys if k not in certificate.designs_covered]
-    if missing:
-        failures.append(f"{name}: design {missing[0]} has a safe speed but is not covered"
-                        + (f" (and {len(missing) - 1} more)" if len(missing) > 1 else ""))
-    if certificate.method == NONE:
-        return failures
-    if not (math.isfinite(certificate.decay_rate_per_s) and certificate.decay_rate_per_s > 0.0):
-        failures.append(f"{name}: decay rate {certificate.decay_rate_per_s!r}/s must be positive")
-        return failures
-    matrix_of, found = _matrix_assignment(certificate, keys, name)
-    failures += found
-    if matrix_of is None:
-        return failures
-    matrices, found = _checked_matrices(matrix_of, name)
-    failures += found
-    failures += _corner_failures(vehicle, syn, covered, keys, matrix_of, matrices, certificate,
-                                 name)
-    if certificate.method == DWELL:  # the jumps among the modes this table's designs use
-        failures += _dwell_failures(matrices, certificate, name)
-    return failures + _loop_failures(vehicle, covered, settings, certificate, name)
-
-
-def _matrix_assignment(certificate: SwitchingCertificate, keys: list[str], name: str
-                       ) -> tuple[dict | None, list[str]]:
-    """Which stored matrix proves each covered design: ``({key: (label, rows)}, failures)``;
-    None instead of the assignment where the certificate stores no matrix to check."""
-    failures = []
-    if certificate.method == COMMON:
-        if certificate.lyapunov_matrix is None:
-            return None, [f"{name}: method 'common' without a Lyapunov matrix"]
-        matrix_of = {k: ("P", certificate.lyapunov_matrix) for k in keys}
-        if certificate.dwell_time_s != 0.0:
-            failures.append(f"{name}: a common P needs no dwell time, but "
-                            f"{certificate.dwell_time_s} s is stored")
-    else:
-        matrix_of = {}
-        for i, mode in enumerate(certificate.modes):
-            for k in mode.designs:
-                matrix_of[k] = (f"P_{i}", mode.lyapunov_matrix)
-        unassigned = [k for k in keys if k not in matrix_of]
-        if unassigned:
-            failures.append(f"{name}: design {unassigned[0]} has no mode Lyapunov matrix")
-    return matrix_of, failures
-
-
-def _checked_matrices(matrix_of: dict, name: str) -> tuple[dict[str, np.ndarray], list[str]]:
-    """The stored matrices that are finite, 4 x 4, symmetric and positive definite, by label,
-    and the failures of the others."""
-    failures = []
-    matrices = {}
-    for label, rows in {v[0]: v[1] for v in matrix_of.values()}.items():
-        p = np.asarray(rows, dtype=float)
-        if p.shape != (4, 4) or not np.all(np.isfinite(p)):
-            failures.append(f"{name}: {label} must be a finite 4 x 4 matrix")
-            continue
-        if np.abs(p - p.T).max() > 1e-9 * max(np.abs(p).max(), 1.0):
-            failures.append(f"{name}: {label} is not symmetric")
-            continue
-        if np.linalg.eigvalsh(p).min() <= 0.0:
-            failures.append(f"{name}: {label} is not positive definite (smallest eigenvalue "
-                            f"{np.linalg.eigvalsh(p).min():.6g})")
-            continue
-        matrices[label] = p
-    return matrices, failures
-
-
-def _corner_failures(vehicle: VehicleParams, syn: SynthesisSettings,
-                     covered: list[ControllerDesign], keys: list[str], matrix_of: dict,
-                     matrices: dict[str, np.ndarray], certificate: SwitchingCertificate,
-                     name: str) -> list[str]:
-    """The covered designs (first corner each) whose matrix proves less than the stored decay
-    rate, within :data:`SWITCHING_TOLERANCE`."""
-    failures = []
-    wanted = certificate.decay_rate_per_s - SWITCHING_TOLERANCE
-    for d, key in zip(covered, keys, strict=True):
-        if key not in matrix_of or matrix_of[key][0] not in matrices:
-            continue
-        label = matrix_of[key][0]
-        p = matrices[label]
-        for (c, v), m in zip(box_corners(d, syn.speed_min_mps),
-                             corner_matrices(vehicle, d, syn.speed_min_mps), strict=True):
-            rate = certified_rate(p, m)
-            if rate < wanted:
-                failures.append(
-                    f"{name}: at design {key}'s corner C = {c:.6g} N/rad, V = {v:.4g} m/s, "
-                    f"{label} proves decay {rate:.6g}/s < the stored {certificate.decay_rate_per_s}"
-                    "/s (max eig of the symmetrised LMI "
-                    f"{_lmi_max_eig(p, m, certificate.decay_rate_per_s):.6g} > 0)")
-                break
-    return failures
-
-
-def _dwell_failures(matrices: dict[str, np.ndarray], certificate: SwitchingCertificate,
-                    name: str) -> list[str]:
-    """For "dwell": the stored jump factor mu and dwell time against the modes' matrices."""
-    failures = []
-    mu = _largest_jump(list(matrices.values()))
-    if mu > certificate.jump_factor * (1.0 + JUMP_TOLERANCE):
-        failures.append(f"{name}: jump factor max lambda_max(P_n^-1 P_m) = {mu:.6g} exceeds "
-                        f"the stored {certificate.jump_factor}")
-    need = math.log(max(mu, 1.0)) / (2.0 * certificate.decay_rate_per_s)
-    if certificate.dwell_time_s < need * (1.0 - JUMP_TOLERANCE):
-        failures.append(f"{name}: dwell time {certificate.dwell_time_s} s is below "
-                        f"ln(mu) / (2 lambda_0) = {need:.6g} s")
-    return failures
-
-
-def _loop_failures(vehicle, covered, settings, certificate, name) -> list[str]:
-    """The L1 reference loops' matrix, when stored: for the law of ``settings`` (when known)
-    and rechecked by :func:`drake_cert.synthesis.loop_switching.check_loop_certificate`."""
-    from drake_cert.synthesis.loop_switching import check_loop_certificate
-
-    if certificate.loop_lyapunov_matrix is None:
-        return []
-    law = certificate.loop_law
-    if isinstance(settings, Settings) and law != settings.controller.adaptation_law:
-        return [f"{name}: the loop matrix is for the {law!r} law, the settings run "
-                f"{settings.controller.adaptation_law!r}"]
-    if certificate.loop_decay_rate_per_s <= 0.0:
-        return [f"{name}: loop_decay_rate_per_s = {certificate.loop_decay_rate_per_s} must be "
-                "positive"]
-    return check_loop_certificate(vehicle, covered, _synthesis(settings).speed_min_mps, law,
-                                  certificate.loop_lyapunov_matrix,
-                                  certificate.loop_decay_rate_per_s, name)
-
-
-def _lmi_max_eig(p, m, decay) -> float:
-    lyap = m.T @ p + p @ m + 2.0 * decay * p
-    return float(np.linalg.eigvalsh(0.5 * (lyap + lyap.T)).max())
-
-
-def check_table_switching(vehicle: VehicleParams, designs: list[ControllerDesign],
-                          settings: Settings | SynthesisSettings,
-                          conditions: ConditionsTable | None,
-                          certificates: tuple[SwitchingCertificate, ...]) -> list[str]:
-    """:func:`check_switching_certificate` for every family of :func:`switching_families`;
-    a family with a design with a safe speed but no certificate, a family certified twice, and
-    a design with a safe speed in no family are failures too (a certificate for a family the
-    conditions do not name proves nothing needed and is ignored)."""
-    families = switching_families(designs, conditions)
-    by_family = {c.family: c for c in certificates}
-    failures = []
-    if len(by_family) != len(certificates):
-        failures.append("switching certificates: a family is certified twice")
-    in_family = {design_key(d) for _, members in families for d in members}
-    for d in designs:
-        if d.has_safe_speed and design_key(d) not in in_family:
-            failures.append(f"switching certificates: design {design_key(d)} has a safe speed "
-                            "but belongs to no switching family (no preset's label range)")
-    for name, members in families:
-        if name not in by_family:
-            if any(d.has_safe_speed for d in members):
-                failures.append(f"switching certificates: family {name} has no certificate")
-            continue
-        failures += check_switching_certificate(vehicle, members, settings, by_family[name])
-    return failures
 
 
 # ----------------------------------------------------------------- YAML mapping

@@ -30,6 +30,7 @@ holds when some condition fails at every speed of the synthesis speed grid.
 """
 
 import dataclasses
+import functools
 import math
 from pathlib import Path
 
@@ -49,7 +50,7 @@ from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import ConfigError
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.design_io import DesignTable, load_design_file
-from drake_cert.synthesis.switching import check_table_switching
+from drake_cert.synthesis.verify_switching import check_table_switching
 
 CONDITION_NAMES = ("gain_decay", "l1_condition", "reference_stability",
                    "steady_state_offset", "grip")
@@ -351,22 +352,25 @@ def l1_condition_value(vehicle, design, speed) -> float:
     return worst * bound
 
 
+def reference_matrix(vehicle, design, stiffness, speed) -> np.ndarray:
+    """The reference system ``[[A(C) - b(C) k_m, b(C)], [-k q', -k w]]`` (5 x 5, 1/s) at (C, V),
+    with the filter row q of the design's certified law (:func:`_filter_row`)."""
+    k = design.filter_gain
+    a, b, _ = lateral_error_dynamics(vehicle, stiffness, speed)
+    m = np.zeros((5, 5))
+    m[:4, :4] = a - np.outer(b, design.k_m_array)
+    m[:4, 4] = b
+    m[4, :4] = -k * _filter_row(vehicle, design, stiffness, speed)
+    m[4, 4] = -k * stiffness / design.nominal_stiffness_n_per_rad
+    return m
+
+
 def reference_abscissas(vehicle, design, speeds) -> np.ndarray:
     """``max Re eig`` of the reference system over the dense C grid, at each speed (1/s)."""
-    k = design.filter_gain
     out = []
     for v in speeds:
-        a_m, b_m, _, _ = _nominal(vehicle, design, v)
-        mats = []
-        for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS):
-            a, b, _ = lateral_error_dynamics(vehicle, c, v)
-            w = c / design.nominal_stiffness_n_per_rad
-            m = np.zeros((5, 5))
-            m[:4, :4] = a - np.outer(b, design.k_m_array)
-            m[:4, 4] = b
-            m[4, :4] = -k * _filter_row(vehicle, design, c, v)
-            m[4, 4] = -k * w
-            mats.append(m)
+        mats = [reference_matrix(vehicle, design, c, v)
+                for c in _dense(*design.certified_interval, DENSE_STIFFNESS_POINTS)]
         out.append(np.linalg.eigvals(np.array(mats)).real.max())
     return np.array(out)
 
@@ -839,7 +843,8 @@ def verify_design_table(table: DesignTable | str | Path, progress=None, *,
     design file) or :class:`drake_cert.errors.ConfigError` (a reference file), naming it.
 
     The table's switching certificates, when present, are rechecked
-    (:func:`drake_cert.synthesis.switching.check_table_switching`, failures named ``switching``). A
+    (:func:`drake_cert.synthesis.verify_switching.check_table_switching`, with this module's
+    reference systems; failures named ``switching``). A
     table with at most one design with a safe speed needs none; otherwise a missing section is a
     note (``report.notes``), or a failure with ``require_switching``.
 
@@ -872,7 +877,8 @@ def verify_design_table(table: DesignTable | str | Path, progress=None, *,
     switching_failures, notes = [], []
     if table.switching is not None:
         switching_failures = [(SWITCHING, m) for m in check_table_switching(
-            vehicle, table.designs, settings, conditions, table.switching)]
+            vehicle, table.designs, settings, conditions, table.switching,
+            functools.partial(reference_matrix, vehicle))]
     elif sum(d.has_safe_speed for d in table.designs) > 1:
         if require_switching:
             switching_failures.append((SWITCHING, NO_SWITCHING_NOTE))

@@ -16,6 +16,7 @@ The claims, for the shipped vehicle, conditions and settings:
 """
 
 import dataclasses
+import functools
 import math
 
 import numpy as np
@@ -27,15 +28,14 @@ from drake_cert import cli
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis import gains, switching
 from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
-from drake_cert.synthesis.switching import (
-    COMMON,
-    DWELL,
+from drake_cert.synthesis.switching import COMMON, DWELL, design_key, switching_families
+from drake_cert.synthesis.verify import SWITCHING, reference_matrix, verify_design_table
+from drake_cert.synthesis.verify_switching import (
+    SWITCHING_TOLERANCE,
+    check_speeds,
     check_switching_certificate,
     check_table_switching,
-    design_key,
-    switching_families,
 )
-from drake_cert.synthesis.verify import SWITCHING, verify_design_table
 
 STEP_S = 0.01  # switching period of the simulations (s)
 ACCEL_MPS2 = 4.0  # |dV/dt| of the simulations
@@ -88,7 +88,7 @@ def _proved_rate(p, m):
 
 
 def test_the_check_uses_the_gain_grid_checks_tolerance():
-    assert switching.SWITCHING_TOLERANCE == gains.GRID_CHECK_TOLERANCE
+    assert SWITCHING_TOLERANCE == gains.GRID_CHECK_TOLERANCE
 
 
 def test_every_preset_is_certified_and_the_certificates_check(certified):
@@ -96,7 +96,8 @@ def test_every_preset_is_certified_and_the_certificates_check(certified):
     assert methods == {"carla-like": COMMON, "rtk-like": COMMON, "robotcar-like": COMMON,
                        "weather": COMMON}
     assert check_table_switching(certified.vehicle, certified.designs, certified.settings,
-                                 certified.conditions, certified.switching) == []
+                                 certified.conditions, certified.switching,
+                                 functools.partial(reference_matrix, certified.vehicle)) == []
     alpha = certified.settings.synthesis.decay_rate
     for c in certified.switching:
         # what the joint LMI asked, up to the solver's accuracy (the stored rate is what the
@@ -244,15 +245,21 @@ def test_every_presets_l1_reference_loops_share_a_matrix_with_the_filter_state(c
     """z = [s, u_ad]: one P_z with R_i' P_z + P_z R_i + 2 lambda_z P_z <= 0 at both ends of
     every design's interval and every speed of a grid between the synthesis's grid speeds (the
     piecewise-constant law, the one that runs)."""
-    from drake_cert.synthesis.loop_switching import check_loop_certificate, loop_matrices
+    from drake_cert.synthesis.loop_switching import loop_matrices, loop_speeds
     from drake_cert.synthesis.switching import certified_rate
 
     for c in certified.switching:
         assert c.loop_law == "piecewise_constant" and c.loop_decay_rate_per_s > 0.05
         p = np.array(c.loop_lyapunov_matrix)
         designs = _family(certified, c.family)
-        assert check_loop_certificate(certified.vehicle, designs, _speed_min(certified),
-                                      c.loop_law, p, c.loop_decay_rate_per_s, c.family) == []
+        # verify's own check (its reference systems, speeds half a step off the synthesis's)
+        assert check_switching_certificate(
+            certified.vehicle, designs, certified.settings, c,
+            functools.partial(reference_matrix, certified.vehicle)) == []
+        d = designs[0]
+        posed = set(loop_speeds(d, _speed_min(certified)))
+        inner = [v for v in check_speeds(d, _speed_min(certified))[1:-1]]
+        assert inner and not posed & set(inner)
         for d in designs[:2]:  # a quarter step off both grids
             for m in loop_matrices(certified.vehicle, d, _speed_min(certified), c.loop_law,
                                    offset=0.25):
@@ -355,11 +362,13 @@ def test_an_added_design_outside_every_family_fails(certified, rtk_table):
     table = dataclasses.replace(rtk_table, designs=rtk_table.designs + [extra],
                                 switching=certified.switching)
     failures = check_table_switching(table.vehicle, table.designs, table.settings,
-                                     table.conditions, table.switching)
+                                     table.conditions, table.switching,
+                                     functools.partial(reference_matrix, table.vehicle))
     assert len(failures) == 1 and "belongs to no switching family" in failures[0]
     # without conditions the family is the whole table: the new design is not covered
     cert = switching.common_lyapunov_certificate(table.vehicle, rtk_table.designs, table.settings)
-    assert check_switching_certificate(table.vehicle, table.designs, table.settings, cert) == [
+    assert check_switching_certificate(table.vehicle, table.designs, table.settings, cert,
+                                       functools.partial(reference_matrix, table.vehicle)) == [
         f"switching certificate (table): design {design_key(extra)} has a safe speed but is not "
         "covered"]
     assert design_key(extra) == "[40000, 60000]"  # a regression design is named by its interval
