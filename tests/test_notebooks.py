@@ -27,6 +27,7 @@ def test_certified_perception_notebook_runs(monkeypatch):
     _execute("certified_perception.ipynb", monkeypatch)
 
 
+@pytest.mark.slow  # ~60 s on 2 cores; the Diagram it drives is tested fast in test_driving.py
 def test_certified_driving_notebook_runs(monkeypatch):
     _execute("certified_driving.ipynb", monkeypatch)
 

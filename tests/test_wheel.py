@@ -59,6 +59,7 @@ def test_the_wheel_holds_systems_and_synthesis_inside_drake_cert(wheel):
     assert "drake_cert/synthesis/table.py" in names
 
 
+@pytest.mark.slow  # a fresh environment: ~7 s; the wheel's contents are checked fast above
 def test_a_non_editable_install_runs_the_cli_and_imports_from_itself(fresh_install, tmp_path):
     help_ = subprocess.run([str(fresh_install / "drake-cert"), "--help"], capture_output=True,
                            text=True, cwd=tmp_path, timeout=120)
