@@ -438,8 +438,7 @@ def cornering_slip_angles(vehicle: VehicleParams, stiffness, speed, radius):
     m, lf, lr = vehicle.mass_kg, vehicle.lf_m, vehicle.lr_m
     r = speed / radius
     kf = 2.0 * stiffness
-    rear = vehicle.rear_tire_stiffness_scale or vehicle.tire_stiffness_scale
-    kr = 2.0 * stiffness * rear / vehicle.tire_stiffness_scale
+    kr = 2.0 * stiffness * vehicle.rear_stiffness_ratio
     # F_f = kf (delta - (vy + lf r)/V), F_r = kr (-(vy - lr r)/V); unknowns (vy, delta)
     lhs = np.array([[-(kf + kr) / speed, kf], [(-lf * kf + lr * kr) / speed, lf * kf]])
     rhs = np.array([m * speed * r + kf * lf * r / speed - kr * lr * r / speed,

@@ -21,6 +21,7 @@ import scipy.linalg
 from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.lyapunov_rate import certified_rate
 from drake_cert.synthesis.switching import (
     COMMON,
     DWELL,
@@ -35,13 +36,6 @@ SWITCHING_TOLERANCE = 1.0e-6  # 1/s slack on the stored decay rate (the gain gri
 JUMP_TOLERANCE = 1.0e-6  # relative slack on the stored jump factor mu
 LOOP_TOLERANCE = 1.0e-6  # 1/s slack on the stored loop decay rate
 LOOP_CHECK_STEP_MPS = 0.25  # the loop check's speed grid step, shifted by half a step
-
-
-def proven_rate(p: np.ndarray, m: np.ndarray) -> float:
-    """The decay rate (1/s) ``V = s' P s`` proves for ``s' = M s``:
-    ``-lambda_max(P^-1 sym(M' P + P M)) / 2`` (a generalized eigenvalue problem)."""
-    lyap = m.T @ p + p @ m
-    return float(-0.5 * scipy.linalg.eigh(0.5 * (lyap + lyap.T), p, eigvals_only=True).max())
 
 
 def corners(design: ControllerDesign, speed_min_mps: float) -> list[tuple[float, float]]:
@@ -173,7 +167,7 @@ def _corner_failures(vehicle, speed_min_mps, covered, keys, matrix_of, matrices,
         p = matrices[label]
         for c, v in corners(d, speed_min_mps):
             m = closed_loop(vehicle, d, c, v)
-            rate = proven_rate(p, m)
+            rate = certified_rate(p, m)
             if rate < wanted:
                 lyap = m.T @ p + p @ m + 2.0 * certificate.decay_rate_per_s * p
                 worst = float(np.linalg.eigvalsh(0.5 * (lyap + lyap.T)).max())
@@ -243,7 +237,7 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                 if not np.all(np.isfinite(m)):
                     return [f"{name}: design {key}'s reference loop is not finite at "
                             f"C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-                rate = proven_rate(p, m)
+                rate = certified_rate(p, m)
                 if rate < certificate.loop_decay_rate_per_s - LOOP_TOLERANCE:
                     return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
                             f"{certificate.loop_decay_rate_per_s}/s for design {key} at "
