@@ -89,7 +89,7 @@ def test_claims_lead_with_the_unconditioned_headline_and_keep_the_split_as_a_dia
         if r["position"] == 0 and r["attack"] == "sa":
             r["design_labels"] = "grippy"  # g's and f's ranges miss "dry" on frame 0
     doc = claims_document(rows, 0.25, resamples=200)
-    assert list(doc)[:3] == ["headline", "truth_conditioned_diagnostic", "p"]
+    assert list(doc)[:4] == ["headline", "truth_conditioned_diagnostic", "paper_claims", "p"]
     assert preset_claims(doc) == {"p": check_claims(rows, 0.25)["p"]}
     g = next(r for r in doc["headline"]["rows"] if r["pipeline"] == "g"
              and r["selection"] == "all" and r["preset"] == "all")

@@ -230,8 +230,13 @@ def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(
     # The printed summary carries the claims' verdicts, as claims.json states them.
     printed = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
     claims = json.loads((copy / "claims.json").read_text())
-    assert list(claims)[:2] == ["headline", "truth_conditioned_diagnostic"]  # they lead
+    assert list(claims)[:3] == ["headline", "truth_conditioned_diagnostic", "paper_claims"]
     assert printed["claims_hold"] == {p: c["holds"] for p, c in preset_claims(claims).items()}
+    # ... and the paper's claims: how many hold and fail, the failing ones by name
+    verdicts = [c["holds"] for c in claims["paper_claims"]]
+    assert printed["paper_claims"]["fails"] == verdicts.count(False) == \
+        len(printed["paper_claims_failing"])
+    assert printed["paper_claims"]["holds"] == verdicts.count(True) > 0
     assert set(printed["claims_hold"]) == {"carla-like", "rtk-like", "robotcar-like"}
     assert main([*QUICK_ARGS, "--out", str(tmp_path / "empty"), "--from-store"]) == 2
     assert "holds no frame" in capsys.readouterr().err

@@ -91,6 +91,12 @@ def test_no_departure_takes_the_exact_bound_over_frames():
     _, up = clopper_pearson_one_sided(0, 50, 0.025)
     assert g["ci95_pct"] == pytest.approx([0.0, 100 * float(up)])
     assert g["ci95_pct"][1] > 100 * per_episode_cp_width(0, 500)
+    # ... and says so: the row and the table mark that interval, the legend names it
+    assert g["ci95_method"] == "clopper_pearson_frames"
+    text = hl.markdown(hl.headline(rows, resamples=100))
+    assert "= 0.00% [0.00, 7.11]*" in text and "* marks an episode interval" in text
+    some = [episode(k, "g", left=k == 0) for k in range(50) for _ in range(10)]
+    assert find(hl.headline(some, resamples=100), "g")["ci95_method"] == "cluster_bootstrap"
 
 
 def test_pipelines_are_counted_by_whatever_name_they_carry():
@@ -103,7 +109,9 @@ def test_pipelines_are_counted_by_whatever_name_they_carry():
     assert find(result, "f", preset="q")["episodes"] == 5
     assert find(result, "g", "SA eps = 0.25", "p")["episodes"] == 5
     text = hl.markdown(result, main_eps=0.25, names=hl.display_names("safe_set"))
-    assert "g (robust conformal interval)" in text and "g (safe-set interval)" in text
+    assert "g (robust conformal interval: the certified pipeline)" in text
+    assert "g (safe-set interval: the paper's, assumes g right on the clean frame)" in text
+    assert text.index("the certified pipeline") < text.index("safe-set interval")  # it leads
 
 
 def test_frame_rows_read_back_from_csv_as_written(tmp_path):

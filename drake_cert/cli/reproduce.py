@@ -211,7 +211,7 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
     """Log the invocation, write the tables, claims and meta under ``out`` and print the
     summary line."""
     from drake_cert.config import load_conditions
-    from drake_cert.experiments import claims, outputs, tables
+    from drake_cert.experiments import claims, outputs, paper_claims, tables
     from drake_cert.experiments.reproduce import tasks_for
     from drake_cert.io import provenance
 
@@ -229,8 +229,12 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
                                     plots=not args.no_plots, designs=designs)
-    holds = {p: c["holds"] for p, c in claims.preset_claims(
-        json.loads((out / "claims.json").read_text())).items()}
+    document = json.loads((out / "claims.json").read_text())
+    holds = {p: c["holds"] for p, c in claims.preset_claims(document).items()}
+    paper = document.get("paper_claims", [])
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
+                      "paper_claims": paper_claims.verdict_counts(paper),
+                      "paper_claims_failing": [paper_claims.label(c) for c in paper
+                                               if c["holds"] is False],
                       "claims_hold": holds, "files": [str(p) for p in written]}))

@@ -1,10 +1,11 @@
-"""The paper's claims, checked on a reproduction's per-frame rows (DESIGN 7.3).
+"""The claims a reproduction checks on its per-frame rows (DESIGN 7.3).
 
 ``claims.md`` and ``claims.json`` (:func:`claims_document`) open with the headline of
 :mod:`drake_cert.experiments.headline` (per pipeline, departures not conditioned on the truth,
 with intervals that account for clustering by frame, beside f at the same budget) and its split
 by whether the certified label range holds the true label, a diagnostic for every pipeline.
-Then, per preset, over the frames the run holds:
+Then the paper's claims per preset and budget with verdicts (:mod:`.paper_claims`), then, per
+preset, over the frames the run holds (1-2 the paper's, 3-4 the project's own criteria):
 1. the non-robust pipeline f is unstable under the safety attack (SA): the share of f's
    episodes that left the lane, per budget;
 2. f loses speed under the efficiency attack (EA): mean velocity per budget against clean;
@@ -25,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from drake_cert.experiments import headline
+from drake_cert.experiments import headline, paper_claims
 from drake_cert.experiments.headline import holds_true_label
 
 SPEED_KEPT = 0.8  # claim 4: the least share of g's clean speed kept under EA
@@ -185,7 +186,7 @@ def markdown(claims: dict, main_eps: float) -> str:
               row("clean", lambda c: f"{c['f_clean_velocity_mps']:.2f}")]
     lines += [row(f"EA eps = {e:g}", lambda c, e=e: f"{c['f_ea_velocity_mps'][str(e)]:.2f}")
               for e in budgets]
-    lines += ["", "**3. g inside its certificates** (attacked episodes whose run-time interval "
+    lines += ["", "**3. g inside its certificates** (ours; attacked episodes whose run-time interval "
               "was certified at the attack's budget; departures / episodes)", "", head,
               row("left the lane", lambda c: pct(c["g_inside_certificate"])),
               row("... on frames g labels right when clean",
@@ -202,7 +203,7 @@ def markdown(claims: dict, main_eps: float) -> str:
                   row("g_conformal: certified label range misses the true label",
                       lambda c: pct(c["g_conformal_certified_range_misses_true_label"]))]
     lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
-              f"(claim: >= {SPEED_KEPT:.0%})", "", head]
+              f"(our criterion: >= {SPEED_KEPT:.0%})", "", head]
     lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
         c["g_ea_speed_kept"][str(s)]["ea_mps"], c["g_ea_speed_kept"][str(s)]["clean_mps"],
         c["g_ea_speed_kept"][str(s)]["kept"])) for s in sigmas]
@@ -213,7 +214,9 @@ def markdown(claims: dict, main_eps: float) -> str:
                   for s in sigmas]
     lines += ["", "**Holds?**", "", head]
     for key in next(iter(claims.values()))["holds"]:
-        lines.append(row(key.replace("_", " "), lambda c, k=key: "yes" if c["holds"][k] else "NO"))
+        whose = " (the paper's)" if key.startswith("f_") else " (ours)"
+        lines.append(row(key.replace("_", " ") + whose,
+                         lambda c, k=key: "yes" if c["holds"][k] else "NO"))
     deps = [(p, d) for p in presets for d in claims[p]["g_departures_inside_certificate"]]
     if deps:
         lines += ["", "Departures of g inside its certificates (each a frame and cell):", "",
@@ -234,23 +237,31 @@ def markdown(claims: dict, main_eps: float) -> str:
 def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headline.RESAMPLES,
                     seed: int = headline.SEED) -> dict:
     """What ``claims.json`` holds, in this order: ``headline`` (:func:`headline.headline`),
-    ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), then claims 1-4 per
-    preset (:func:`check_claims`, one key per preset)."""
+    ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), ``paper_claims``
+    (the paper's claims per preset and budget, :func:`paper_claims.paper_claims`), then the
+    figures 1-4 per preset (:func:`check_claims`, one key per preset)."""
     return dict(headline=headline.headline(rows, resamples=resamples, seed=seed),
                 truth_conditioned_diagnostic=headline.truth_conditioned(rows),
+                paper_claims=paper_claims.paper_claims(rows),
                 **check_claims(rows, main_eps))
 
 
 def preset_claims(document: dict) -> dict:
     """The per-preset part of a :func:`claims_document` (or of a ``claims.json`` read back)."""
     return {k: v for k, v in document.items()
-            if k not in ("headline", "truth_conditioned_diagnostic")}
+            if k not in ("headline", "truth_conditioned_diagnostic", "paper_claims")}
 
 
 def document_markdown(document: dict, main_eps: float, interval: str = "safe_set") -> str:
-    """``claims.md``: the headline and its diagnostic first, then claims 1-4 per preset;
-    ``interval``: the run's interval for ``g`` (names it in the headline)."""
-    return (headline.markdown(document["headline"], document["truth_conditioned_diagnostic"],
-                              main_eps=main_eps, names=headline.display_names(interval))
-            + "\n**The paper's claims, per preset**\n\n"
+    """``claims.md``: the headline and its diagnostic first, then the paper's claims per preset
+    and budget with their verdicts, then the figures per preset (the paper's claims about f,
+    and the project's own criteria for g); ``interval``: the run's interval for ``g`` (names
+    it in the headline)."""
+    text = headline.markdown(document["headline"], document["truth_conditioned_diagnostic"],
+                             main_eps=main_eps, names=headline.display_names(interval))
+    if document.get("paper_claims"):
+        text += ("\n**The paper's claims, per data set and budget** (`paper_claims` in "
+                 "claims.json)\n\n" + paper_claims.markdown(document["paper_claims"]))
+    return (text + "\n**Figures per preset: f under attack (the paper's claims 1-2) and the "
+            "project's own criteria for g (3-4, docs/design.md 7.3; not the paper's)**\n\n"
             + markdown(preset_claims(document), main_eps))

@@ -163,10 +163,13 @@ def departure_shares(rows: list[dict], *, certified_only: bool, resamples: int =
     if 0 < k < n:
         lo, hi = cluster_bootstrap_share(hits, totals, resamples=resamples, seed=seed,
                                          level=level)
+        method = "cluster_bootstrap"
     else:  # no spread to resample: the frame share's exact interval
         lo, hi = f_lo, f_hi
+        method = "clopper_pearson_frames"
     return dict(attacked=len(rows), episodes=n, departures=k,
                 pct=100.0 * k / n if n else None, ci95_pct=[100.0 * lo, 100.0 * hi],
+                ci95_method=method,
                 frames=frames, frames_departed=frames_hit,
                 frames_pct=100.0 * frames_hit / frames if frames else None,
                 frames_ci95_pct=[100.0 * f_lo, 100.0 * f_hi])
@@ -245,8 +248,8 @@ def display_names(interval: str = "safe_set") -> dict[str, str]:
     (``"safe_set"`` or ``"conformal"``, :class:`ReproduceConfig`'s ``interval``)."""
     return {"f": "f (non-robust)",
             "g": "g (robust conformal interval)" if interval == "conformal"
-            else "g (safe-set interval)",
-            "g_conformal": "g (robust conformal interval)",
+            else "g (safe-set interval: the paper's, assumes g right on the clean frame)",
+            "g_conformal": "g (robust conformal interval: the certified pipeline)",
             "f_reg": "f_reg (non-robust regressor)", "h": "h (median-smoothed regressor)"}
 
 
@@ -255,10 +258,23 @@ def _name(pipeline: str, names: dict | None) -> str:
 
 
 def _share_text(s: dict) -> str:
+    """An episode share; its interval marked * where it is Clopper-Pearson over frames (no
+    departure, or all: the bootstrap has no spread)."""
     if not s["episodes"]:
         return "n/a"
     lo, hi = s["ci95_pct"]
-    return f"{s['departures']:,} / {s['episodes']:,} = {s['pct']:.2f}% [{lo:.2f}, {hi:.2f}]"
+    mark = "*" if s.get("ci95_method") == "clopper_pearson_frames" else ""
+    return (f"{s['departures']:,} / {s['episodes']:,} = {s['pct']:.2f}% "
+            f"[{lo:.2f}, {hi:.2f}]{mark}")
+
+
+# The order pipelines are shown in: the assumption-free certified pipeline before the paper's.
+SHOWN_ORDER = ("f", "g_conformal", "g", "f_reg", "h")
+
+
+def _shown(pipelines) -> list[str]:
+    return sorted(pipelines, key=lambda p: SHOWN_ORDER.index(p) if p in SHOWN_ORDER
+                  else len(SHOWN_ORDER))
 
 
 def _frames_text(s: dict) -> str:
@@ -274,7 +290,7 @@ def markdown(result: dict, diagnostic: dict | None = None, *, main_eps: float | 
     budget, then each budget side by side, each preset, and the truth-conditioned diagnostic.
     ``names`` gives a pipeline's display name (e.g. ``{"g": "g (safe-set interval)"}``)."""
     rows = result["rows"]
-    pipelines = list(dict.fromkeys(r["pipeline"] for r in rows))
+    pipelines = _shown(dict.fromkeys(r["pipeline"] for r in rows))
 
     def get(pipeline, selection, preset=ALL):
         return next((r for r in rows if r["pipeline"] == pipeline and r["selection"] == selection
@@ -290,7 +306,9 @@ def markdown(result: dict, diagnostic: dict | None = None, *, main_eps: float | 
              f"{result['seed']}, since departures cluster by frame; frames by Clopper-Pearson "
              "over frames. A certifying pipeline counts the attacked episodes whose run-time "
              "interval was certified at the attack's budget; f and f_reg, which certify "
-             "nothing, count every attacked episode.)", "",
+             "nothing, count every attacked episode. * marks an episode interval that is "
+             "Clopper-Pearson over frames: with no departure, or all, the bootstrap has no "
+             "spread.)", "",
              "| pipeline | episodes | selection | left the lane (episodes) | frames with a "
              "departure |", "|---|---|---|---|---|"]
     main = [ALL] + ([f"SA eps = {main_eps:g}"] if main_eps is not None else [])
@@ -323,7 +341,8 @@ def markdown(result: dict, diagnostic: dict | None = None, *, main_eps: float | 
         lines += ["", "**Diagnostic: split by whether the certified label range holds the "
                   "true label** (same episodes as above; departures / episodes)", "",
                   "| pipeline | range holds the true label | range misses it |", "|---|---|---|"]
-        for pipeline, d in diagnostic.items():
+        for pipeline, d in sorted(diagnostic.items(), key=lambda kv: (
+                kv[0] == "every_row", _shown(diagnostic).index(kv[0]))):
             title = ("every row of every pipeline (clean included)" if pipeline == "every_row"
                      else _name(pipeline, names))
             lines.append(f"| {title} | {d['holds']['departures']:,} / "

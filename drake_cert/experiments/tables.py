@@ -1,8 +1,10 @@
 """The paper's tables from per-frame rows: one long CSV and Markdown beside the paper's numbers.
 
 Beside ours, the paper's number stands in parentheses only where it is the same metric
-(accuracy, velocity); its undefined "instability", its safe-set certificate tau and its MSE of
-unstated unit stand in their own rows or columns, named "paper's ..." (see ``PAPER``).
+(accuracy, velocity) at the same budget: clean, or attacked at eps = 1, the paper's
+delta = 255 read as an L2 norm over [0, 255] pixel values. Its numbers at another budget, its
+undefined "instability", its safe-set certificate tau and its MSE of unstated unit stand in
+their own rows or columns, named "paper's ..." (see ``PAPER``).
 
 Metrics (DESIGN 7), per cell (preset, task, pipeline, sigma, attack, eps) over its frames:
 - accuracy: share (%) of frames whose predicted label is the true one (classification);
@@ -168,10 +170,12 @@ def _cell(summary: list[dict], **key) -> dict | None:
     return None
 
 
-def _ours_vs_paper(ours: dict | None, paper: dict | None, metric: str) -> str:
-    """Ours, with the paper's number in parentheses only where it is the same metric."""
+def _ours_vs_paper(ours: dict | None, paper: dict | None, metric: str,
+                   same_budget: bool = True) -> str:
+    """Ours, with the paper's number in parentheses only where it is the same metric at the
+    same budget (``same_budget``: clean, or attacked at :data:`PAPER_BUDGET_AS_EPS`)."""
     mine = _num(ours[metric]) if ours else "n/a"
-    if metric in SAME_METRICS and paper and metric in paper:
+    if same_budget and metric in SAME_METRICS and paper and metric in paper:
         return f"{mine} ({_num(paper[metric])})"
     return mine
 
@@ -204,8 +208,11 @@ def _header(summary: list[dict], config) -> list[str]:
         f"({in_sweep}); read as a bound on each pixel in [0, 255] it would allow any image.",
         "",
         "**Columns.** `ours (paper's)`: the paper's number in parentheses only where it is the "
-        "same metric: accuracy (%) and velocity (m/s, the design's maximum safe speed; ours is "
-        "grip-limited on the 50 m design curve, hence lower). Instability (%) is ours: the share "
+        "same metric at the same budget (clean, or attacked at eps = "
+        f"{PAPER_BUDGET_AS_EPS:g}): accuracy (%) and velocity (m/s, the design's maximum safe "
+        "speed; ours is grip-limited on the 50 m design curve, hence lower); the paper's "
+        "attacked numbers beside ours at another budget stand in their own rows, named with "
+        "their delta. Instability (%) is ours: the share "
         "of episodes that left the lane on the Fiala plant. *paper's instability* is the "
         "paper's own, undefined measure (0 to 200; 200.00 is not a share), in its own row or "
         "column. Our certificate column is the *label-range radius*: the mean certified L2 "
@@ -259,7 +266,9 @@ def markdown(summary: list[dict], config, conditions) -> str:
     lines = _header(summary, config) + _stiffness_table(presets, conditions)
     clean = {p: _clean_eps(summary, p) for p in presets}
     lines += _f_tables(summary, presets, config.eps, clean)
+    lines += _g_clean_table(summary, config, presets)
     lines += _g_tables(summary, config, presets)
+    lines += _paper_budget_table(summary, config, presets)
     lines += _interval_table(summary, config, presets, clean)
     if config.regression:
         lines += _regression_tables(summary, config, presets, clean)
@@ -273,11 +282,18 @@ def _preset_head(presets: list[str]) -> str:
 
 
 def _ours_row(summary: list[dict], presets: list[str], title: str, metric: str, pipeline: str,
-              attack: str, e: float, paper_table: str | None) -> str:
-    """A row of ours per preset, with the paper's number where it is the same metric."""
+              attack: str, e: float, paper_table: str | None, **key) -> str:
+    """A row of ours per preset, with the paper's number where it is the same metric at the
+    same budget."""
     return "| " + title + " | " + " | ".join(_ours_vs_paper(
-        _cell(summary, preset=p, pipeline=pipeline, attack=attack, eps=e),
-        PAPER.get((paper_table, p)), metric) for p in presets) + " |"
+        _cell(summary, preset=p, pipeline=pipeline, attack=attack, eps=e, **key),
+        PAPER.get((paper_table, p)), metric, _at_paper_budget(attack, e))
+        for p in presets) + " |"
+
+
+def _at_paper_budget(attack: str | None, eps: float) -> bool:
+    """Whether a cell is at the paper's budget: clean, or attacked at eps = delta / 255."""
+    return attack in (None, "none") or math.isclose(eps, PAPER_BUDGET_AS_EPS)
 
 
 def _paper_row(presets: list[str], title: str, paper_table: str, key: str) -> str:
@@ -312,6 +328,63 @@ def _f_tables(summary: list[dict], presets: list[str], eps: float, clean: dict) 
               _paper_row(presets, "paper's instability under SA", "f_attack", "instability"),
               _ours_row(summary, presets, "velocity under EA (m/s)", "velocity_mps", "f", "ea",
                         eps, "f_attack")]
+    if not _at_paper_budget("ea", eps):
+        lines.append(_paper_row(presets, f"paper's velocity under PGD (m/s, delta = "
+                                f"{PAPER_BUDGET}: another budget)", "f_attack", "velocity_mps"))
+    return lines
+
+
+def _paper_budget_table(summary: list[dict], config, presets: list[str]) -> list[str]:
+    """f, and g at the sweep's sigma, at eps = delta / 255: the one budget where the paper's
+    attacked numbers stand beside ours (in parentheses where the metric is the same)."""
+    e, s = PAPER_BUDGET_AS_EPS, config.sweep_sigma
+    if not _cell(summary, pipeline="f", attack="sa", eps=e):
+        return []
+    lines = ["", f"### At the paper's budget: eps = {e:g} (its delta = {PAPER_BUDGET} read as "
+             f"an L2 norm over [0, 255] pixel values); g at sigma = {s}", "",
+             _preset_head(presets),
+             _ours_row(summary, presets, "f accuracy under SA (%)", "accuracy", "f", "sa", e,
+                       None),
+             _ours_row(summary, presets, "f accuracy under EA (%)", "accuracy", "f", "ea", e,
+                       None),
+             _paper_row(presets, "paper's f accuracy under PGD (%, attack objective not "
+                        "stated)", "f_attack", "accuracy"),
+             _ours_row(summary, presets, "f instability under SA (%)", "instability_pct", "f",
+                       "sa", e, None),
+             _paper_row(presets, "paper's f instability under SA", "f_attack", "instability"),
+             _ours_row(summary, presets, "f velocity under EA (m/s)", "velocity_mps", "f", "ea",
+                       e, "f_attack")]
+    for pipe in _g_pipelines(summary):
+        name = "g" if pipe == "g" else "g_conformal"
+        lines += [_ours_row(summary, presets, f"{name} instability under SA (%)",
+                            "instability_pct", pipe, "sa", e, None, sigma=s),
+                  _ours_row(summary, presets, f"{name} certified under SA (%)", "certified_pct",
+                            pipe, "sa", e, None, sigma=s),
+                  "| " + f"{name} velocity under EA (m/s)" + " | " + " | ".join(_ours_vs_paper(
+                      _cell(summary, preset=p, pipeline=pipe, attack="ea", eps=e, sigma=s),
+                      PAPER.get(("g_ea", p, s)) if pipe == "g" else None, "velocity_mps")
+                      for p in presets) + " |",
+                  _ours_row(summary, presets, f"{name} certified under EA (%)", "certified_pct",
+                            pipe, "ea", e, None, sigma=s)]
+    lines.append(f"| paper's g instability under SA at sigma = {s} | " + " | ".join(
+        _paper(PAPER.get(("g_sa", p, s)), "instability") for p in presets) + " |")
+    return lines
+
+
+def _g_clean_table(summary: list[dict], config, presets: list[str]) -> list[str]:
+    """g (each sigma and interval) without attack: instability, velocity, share certified."""
+    lines = ["", "### Smoothed classifier g, clean (no attack)", "",
+             "| sigma | " + " | ".join(f"{p} {m}" for p in presets for m in (
+                 "instab. (%)", "vel. (m/s)", "certified (%)")) + " |",
+             "|---|" + "---|" * (3 * len(presets))]
+    for s, pipe in ((s, pipe) for s in config.sigmas for pipe in _g_pipelines(summary)):
+        cells = []
+        for p in presets:
+            clean = _cell(summary, preset=p, pipeline=pipe, sigma=s, attack="none",
+                          eps=config.eps)
+            cells += [_num(_safe(clean, m)) for m in ("instability_pct", "velocity_mps",
+                                                      "certified_pct")]
+        lines.append(f"| {_g_row_name(s, pipe, summary)} | " + " | ".join(cells) + " |")
     return lines
 
 
@@ -321,7 +394,7 @@ def _g_tables(summary: list[dict], config, presets: list[str]) -> list[str]:
     lines = []
     for attack, columns, title in (
             ("sa", (("instability_pct", "instability (%)"), ("certificate", "label-range radius"),
-                    ("paper:instability", "paper's instability"),
+                    ("paper:instability", "paper's instability (delta 255)"),
                     ("paper:certificate_tau", "paper's tau")), "SA"),
             ("ea", (("velocity_mps", "velocity (m/s)"), ("certificate", "label-range radius"),
                     ("paper:certificate_tau", "paper's tau")), "EA")):
@@ -335,7 +408,8 @@ def _g_tables(summary: list[dict], config, presets: list[str]) -> list[str]:
                 ours = _cell(summary, preset=p, pipeline=pipe, sigma=s, attack=attack, eps=eps)
                 paper = PAPER.get((f"g_{attack}", p, s)) if pipe == "g" else None
                 cells += [_paper(paper, m.split(":")[1]) if m.startswith("paper:")
-                          else _ours_vs_paper(ours, paper, m) for m, _ in columns]
+                          else _ours_vs_paper(ours, paper, m, _at_paper_budget(attack, eps))
+                          for m, _ in columns]
             lines.append(f"| {_g_row_name(s, pipe, summary)} | " + " | ".join(cells) + " |")
     return lines
 
@@ -366,8 +440,14 @@ def _regression_tables(summary: list[dict], config, presets: list[str],
             ("paper's MSE clean (unit not stated)", "paper:mse", None, "f_reg_clean"),
             ("MSE under SA ((kN/rad)^2)", "mse", "sa", None),
             ("paper's MSE under PGD (unit not stated)", "paper:mse", None, "f_reg_attack"),
-            ("velocity clean (m/s)", "velocity_mps", "none", "f_reg_clean"),
+            ("velocity clean (m/s)", "velocity_mps", "none", None),
+            ("paper's 'Efficiency(EA)' in its benign-environment table (m/s)",
+             "paper:velocity_mps", None, "f_reg_clean"),
             ("velocity under EA (m/s)", "velocity_mps", "ea", "f_reg_attack"),
+            (f"paper's velocity under PGD (m/s, delta = {PAPER_BUDGET})", "paper:velocity_mps",
+             None, "f_reg_attack"),
+            ("instability clean (%)", "instability_pct", "none", None),
+            ("paper's instability clean", "paper:instability", None, "f_reg_clean"),
             ("instability under SA (%)", "instability_pct", "sa", None),
             ("paper's instability under SA", "paper:instability", None, "f_reg_attack")):
         if metric.startswith("paper:"):
@@ -376,24 +456,26 @@ def _regression_tables(summary: list[dict], config, presets: list[str],
         lines.append("| " + title + " | " + " | ".join(_ours_vs_paper(
             _cell(summary, preset=p, pipeline="f_reg", attack=attack,
                   eps=eps if attack != "none" else clean[p]),
-            PAPER.get((paper, p)), metric) for p in presets) + " |")
-    lines += ["", f"### Median-smoothed regressor h (eps = {eps}): instability under SA, "
-              "velocity under EA, interval coverage under SA", "",
-              "| sigma | " + " | ".join(f"{p} {m}" for p in presets
-                                       for m in ("instab. (%)", "vel. (m/s)", "cover. (%)",
-                                                 "paper's instab.")) + " |",
-              "|---|" + "---|" * (4 * len(presets))]
+            PAPER.get((paper, p)), metric, _at_paper_budget(attack, eps))
+            for p in presets) + " |")
+    lines += ["", f"### Median-smoothed regressor h (eps = {eps})", "",
+              "Certified: the share of episodes whose interval h certified at the budget; the "
+              "rest drove the envelope design, so where it is 0 h's instability and coverage "
+              "are the envelope's. The paper's h table states no attack.", "",
+              "| sigma | preset | instability SA (%) | certified SA (%) | velocity EA (m/s) | "
+              "certified EA (%) | coverage SA (%) | paper's instability | paper's velocity "
+              "(attack not stated) |", "|---" * 9 + "|"]
     for s in config.sigmas:
-        cells = []
         for p in presets:
             sa = _cell(summary, preset=p, pipeline="h", sigma=s, attack="sa", eps=eps)
             ea = _cell(summary, preset=p, pipeline="h", sigma=s, attack="ea", eps=eps)
             paper = PAPER.get(("h_sa", p, s))
-            cells += [_ours_vs_paper(sa, paper, "instability_pct"),
-                      _ours_vs_paper(ea, paper, "velocity_mps"),
-                      _num(_safe(sa, "interval_coverage"), 1),
-                      _paper(paper, "instability")]
-        lines.append(f"| {s} | " + " | ".join(cells) + " |")
+            lines.append(f"| {s} | {p} | {_num(_safe(sa, 'instability_pct'))} | "
+                         f"{_num(_safe(sa, 'certified_pct'))} | "
+                         f"{_num(_safe(ea, 'velocity_mps'))} | "
+                         f"{_num(_safe(ea, 'certified_pct'))} | "
+                         f"{_num(_safe(sa, 'interval_coverage'), 1)} | "
+                         f"{_paper(paper, 'instability')} | {_paper(paper, 'velocity_mps')} |")
     return lines
 
 
