@@ -186,8 +186,8 @@ def markdown(claims: dict, main_eps: float) -> str:
               row("clean", lambda c: f"{c['f_clean_velocity_mps']:.2f}")]
     lines += [row(f"EA eps = {e:g}", lambda c, e=e: f"{c['f_ea_velocity_mps'][str(e)]:.2f}")
               for e in budgets]
-    lines += ["", "**3. g inside its certificates** (ours; attacked episodes whose run-time interval "
-              "was certified at the attack's budget; departures / episodes)", "", head,
+    lines += ["", "**3. g inside its certificates** (ours; attacked episodes whose run-time "
+              "interval was certified at the attack's budget; departures / episodes)", "", head,
               row("left the lane", lambda c: pct(c["g_inside_certificate"])),
               row("... on frames g labels right when clean",
                   lambda c: pct(c["g_inside_certificate_clean_right"])),
