@@ -1,15 +1,15 @@
-"""Cost of one frame of `drake-cert reproduce`, and how much of it is certificate sampling.
+"""Cost of `drake-cert reproduce` per frame and per stage: fixed-n certificates in torch (the
+run before sequential decisions) against the default (sequential decisions where a cell is read
+only as a decision, ONNX Runtime where installed), side by side on the same frames.
 
 Runs the reproduction's own worker (``FrameWorker``: the Diagram's attacker, perception and
-interval blocks, then the episodes) on one frame, on one thread as one Ray worker does, at the
-default n = 10,000 and again at n = 1,000. A frame's time is fixed work (attacks, episodes,
-loading) plus sampling that grows with n, so the two timings give both parts: the sampling
-rate ``certificates x 9,000 / (t(10,000) - t(1,000))`` and the sampling share of the frame.
-Classification cells only (``regression=False``): h's cells need the beta calibration first
-(minutes), and the README's per-frame figures count them besides. bfloat16 (the default) and
-float32 side by side in the same run.
+interval blocks, then the episodes) on one thread, as one Ray worker does, at the default size
+(n = 10,000, every pipeline, fp32). The calibrations (h's betas, g's robust conformal
+calibrations) are computed first, once, with the default backend, timed, and given to both
+variants. Each stage's CPU time is summed over the frames: attacks (``Attacker.perturb``),
+certificates (``PerceptionSmoothing.perceive``) and episodes (``EpisodeRunner.outcome``).
 
-Usage: python benchmarks/bench_reproduce_frame.py [--preset robotcar-like] [--position 0]
+Usage: python benchmarks/bench_reproduce_frame.py [--preset robotcar-like] [--positions 0 1]
 """
 
 from __future__ import annotations
@@ -17,49 +17,97 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import time
+from collections import defaultdict
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.experiments.calibrations import calibration_beta, conformal_calibration
+from drake_cert.experiments.episodes import EpisodeRunner
 from drake_cert.experiments.reproduce import FrameWorker
-from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
+from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig, run_model
 from drake_cert.synthesis.table import synthesize_table
+from drake_cert.systems.attacker import Attacker
+from drake_cert.systems.perception_smoothing import PerceptionSmoothing
 from drake_cert.threads import torch_threads
 
+STAGES = {"attacks": (Attacker, "perturb"), "certificates": (PerceptionSmoothing, "perceive"),
+          "episodes": (EpisodeRunner, "outcome")}
 
-def time_frame(config: ReproduceConfig, task: FrameTask, designs) -> tuple[float, int]:
-    """Seconds for one frame on a fresh worker (models loaded on first use), and its
-    number of certificates (rows whose interval came from a smoothed model)."""
-    with torch_threads(1):  # as the executors run a worker
-        worker = FrameWorker(config, designs=designs)
-        start = time.perf_counter()
-        rows = worker(task)
-    return time.perf_counter() - start, sum(r["pipeline"] == "g" for r in rows)
+
+def timed(spent: dict):
+    """Wrap each stage's method so that its time adds to ``spent[stage]``; returns an undo."""
+    originals = {}
+    for stage, (cls, name) in STAGES.items():
+        original = getattr(cls, name)
+        originals[stage] = original
+
+        def wrapper(self, *a, _original=original, _stage=stage, **k):
+            start = time.process_time()
+            try:
+                return _original(self, *a, **k)
+            finally:
+                spent[_stage] += time.process_time() - start
+        setattr(cls, name, wrapper)
+
+    def undo():
+        for stage, (cls, name) in STAGES.items():
+            setattr(cls, name, originals[stage])
+    return undo
+
+
+def calibrate(config: ReproduceConfig, preset: str) -> tuple[dict, dict, float]:
+    """h's betas and g's conformal calibrations of ``preset`` at every sigma, and the CPU
+    seconds they took."""
+    conditions = load_conditions()
+    start = time.process_time()
+    betas = {(preset, s): calibration_beta(config, preset, s,
+                                           run_model(config, preset, "regress", s), conditions)
+             for s in config.sigmas}
+    conformal = {(preset, s): conformal_calibration(config, preset, s, conditions)
+                 for s in config.sigmas}
+    return betas, conformal, time.process_time() - start
+
+
+def run_frames(config, positions, preset, designs, betas, conformal) -> dict:
+    """CPU seconds per stage over the frames, and the total."""
+    spent: dict = defaultdict(float)
+    undo = timed(spent)
+    try:
+        worker = FrameWorker(config, betas=betas, designs=designs, conformal=conformal)
+        start = time.process_time()
+        for position in positions:
+            worker(FrameTask(preset, position))
+        spent["total"] = time.process_time() - start
+    finally:
+        undo()
+    return dict(spent)
 
 
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="robotcar-like")
-    parser.add_argument("--position", type=int, default=0, help="which of the preset's frames")
+    parser.add_argument("--positions", type=int, nargs="+", default=[0, 1],
+                        help="which of the preset's frames")
     args = parser.parse_args()
 
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
-    task = FrameTask(args.preset, args.position)
-    print(f"one frame of {args.preset} (position {args.position}), one thread, "
-          "classification cells only")
-    print(f"{'precision':>9s} {'t(n=10,000)':>12s} {'t(n=1,000)':>11s} {'certificates':>12s} "
-          f"{'samples/s':>10s} {'sampling share':>15s}")
-    for precision in ("bf16", "fp32"):
-        base = ReproduceConfig(presets=(args.preset,), regression=False, conformal=False,
-                               precision=precision)
-        full, certificates = time_frame(base, task, designs)
-        small, _ = time_frame(dataclasses.replace(base, n=1000), task, designs)
-        extra = base.n - 1000  # samples each certificate draws beyond the small run's
-        rate = certificates * extra / (full - small)
-        sampling = (full - small) * (base.n0 + base.n) / extra  # all of the n0 + n samples
-        print(f"{precision:>9s} {full:10.1f} s {small:9.1f} s {certificates:12d} "
-              f"{rate:10.0f} {100 * sampling / full:14.0f}%")
+    after = ReproduceConfig(presets=(args.preset,), precision="fp32")
+    before = dataclasses.replace(after, backend="torch", decisions="fixed")
+    with torch_threads(1):  # as the executors run a worker
+        betas, conformal, cal_s = calibrate(after, args.preset)
+        print(f"{args.preset}, frames {args.positions}, one thread, fp32, default size "
+              f"(n = {after.n}); calibrations ({after.backend}): {cal_s:.0f} CPU-s for "
+              f"{len(after.sigmas)} sigmas")
+        print(f"{'variant':<34s} {'attacks':>9s} {'certificates':>13s} {'episodes':>9s} "
+              f"{'frame total':>12s} {'per frame':>10s}")
+        for name, config in (("fixed n, torch (before)", before),
+                             (f"sequential, {after.backend} (default)", after)):
+            s = run_frames(config, args.positions, args.preset, designs, betas, conformal)
+            print(f"{name:<34s} {s['attacks']:8.1f}s {s['certificates']:12.1f}s "
+                  f"{s['episodes']:8.1f}s {s['total']:11.1f}s "
+                  f"{s['total'] / len(args.positions):9.1f}s")
 
 
 if __name__ == "__main__":

@@ -136,6 +136,7 @@ class PerceptionSmoothing(LeafSystem):
             result is the conformal label set at budget ``eps``, decided sequentially
             (:func:`~drake_cert.certification.conformal.sequential_label_set`, at most n
             samples); with ``"fixed"`` the certificate's votes give it downstream.
+        device: where ``model`` runs ("cpu" or a CUDA device; the frames come from the CPU).
     """
 
     def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
@@ -145,7 +146,7 @@ class PerceptionSmoothing(LeafSystem):
                  label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
                  frame_size: int = 64, compile: bool = False, decision: str = "fixed",
                  ranges=None, alpha_spending: AlphaSpending | None = None,
-                 conformal: RobustConformalCalibration | None = None):
+                 conformal: RobustConformalCalibration | None = None, device: str = "cpu"):
         super().__init__()
         if mode not in MODES:
             raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
@@ -157,6 +158,7 @@ class PerceptionSmoothing(LeafSystem):
         if not (math.isfinite(rate_hz) and rate_hz > 0):
             raise ConfigError(f"perception: rate_hz = {rate_hz!r} must be positive")
         self.model = model.eval()
+        self.device = torch.device(device)
         self.mode, self.task = mode, task
         self.decision = decision if task == "classify" else "fixed"
         self.ranges = ranges
@@ -182,10 +184,11 @@ class PerceptionSmoothing(LeafSystem):
                 elif conformal is None:
                     check_decision_budget(self.n, self.alpha, self.eps, sigma, ranges)
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
-                                                  compile=compile)
+                                                  compile=compile, device=device)
             else:
                 percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
-                self._smooth = MedianSmoothedRegressor(model, sigma, compile=compile)
+                self._smooth = MedianSmoothedRegressor(model, sigma, compile=compile,
+                                                       device=device)
 
         initial = PerceptionResult.no_frame(mode, task)
         self._in = self.DeclareAbstractInputPort(
@@ -227,7 +230,7 @@ class PerceptionSmoothing(LeafSystem):
         try:
             if self.task == "classify":
                 with torch.inference_mode():
-                    base_label = int(self.model(x[None]).argmax(dim=1)[0])
+                    base_label = int(self.model(x[None].to(self.device)).argmax(dim=1)[0])
                 if self.mode == "base":
                     return dataclasses.replace(base, base_label=base_label)
                 if self.decision == "sequential" and self.conformal is not None:
@@ -250,7 +253,7 @@ class PerceptionSmoothing(LeafSystem):
                                            samples=self.n0 + self.n)
             if self.mode == "base":
                 with torch.inference_mode():
-                    value = float(self.model(x[None]).reshape(-1)[0])
+                    value = float(self.model(x[None].to(self.device)).reshape(-1)[0])
                 if not math.isfinite(value):
                     raise CertificationError("regressor returned a non-finite stiffness")
                 return dataclasses.replace(base, base_value_n_per_rad=value)

@@ -134,8 +134,10 @@ def test_an_unreachable_cluster_address_is_refused_at_once(tmp_path, capsys, add
 
 
 def test_both_intervals_read_the_same_certificates_in_one_run(quick_local):
-    """g_conformal reads g's certificate of the same attacked frame (same predicted label on
-    every frame and cell). The quick run's 4 calibration frames per label are too few for
+    """g_conformal reads g's certificate of the same attacked frame where the cell keeps a
+    fixed-n certificate (same predicted label on every frame and attacked cell; the clean
+    cells are decided sequentially, each interval on its own samples from the same streams).
+    The quick run's 4 calibration frames per label are too few for
     alpha_c = 0.008 (124 needed): every label is then in the conformal set, so every
     g_conformal interval is the envelope -- which the safe-set interval of a confidently
     classified frame never is."""
@@ -149,7 +151,9 @@ def test_both_intervals_read_the_same_certificates_in_one_run(quick_local):
     assert len(conformal) == len(g)
     for r in conformal:
         twin = g[(r["preset"], r["position"], r["sigma"], r["attack"], r["eps"])]
-        assert r["predicted"] == twin["predicted"] and r["seed"] == twin["seed"]
+        assert r["seed"] == twin["seed"]
+        if r["attack"] != "none":  # fixed n: the one certificate both intervals read
+            assert r["predicted"] == twin["predicted"]
         envelope = conditions.envelope(r["preset"])
         assert (float(r["interval_lo"]), float(r["interval_hi"])) == tuple(envelope), r
     assert any((float(r["interval_lo"]), float(r["interval_hi"]))

@@ -58,6 +58,17 @@ def configure(parser: argparse.ArgumentParser) -> None:
                              "fp32 where ONNX Runtime is installed, else bf16 where the CPU has "
                              "it natively, else fp32; the environment "
                              "variable DRAKE_CERT_PRECISION=fp32|bf16 fixes what auto means)")
+    parser.add_argument("--device", default="cpu",
+                        help="where the certificates and calibrations sample the models: cpu "
+                             "(default) or cuda[:N] (torch; refused where CUDA is absent). The "
+                             "attacks and the Drake episodes stay on the CPU")
+    parser.add_argument("--backend", choices=("auto", "torch", "onnxruntime"), default="auto",
+                        help="CPU evaluation of the noisy samples (auto: ONNX Runtime where "
+                             "installed and fp32, else torch; torch on a CUDA device)")
+    parser.add_argument("--decisions", choices=("sequential", "fixed"), default="sequential",
+                        help="g's cells read only as a decision at their budget (clean and "
+                             "the budget sweep): sequential (stop once decided; default) or "
+                             "fixed (n0 + n each). The radius columns keep fixed n")
     parser.add_argument("--budget-min", type=float, default=None,
                         help="start no new frame after this many minutes; write the tables of "
                              "the frames finished so far (rerun to resume)")
@@ -75,6 +86,9 @@ def build_config(args):
     from drake_cert.errors import ConfigError
     from drake_cert.experiments.reproduce_config import ReproduceConfig
 
+    if args.backend == "onnxruntime" and args.precision == "bf16":
+        raise ConfigError("--backend onnxruntime evaluates in fp32: use --precision fp32, or "
+                          "--backend torch for bf16")
     if args.interval is not None:
         raise ConfigError("--interval is gone: every run has both intervals, g (the safe-set "
                           "interval) and g_conformal (the robust conformal interval) on the same "
@@ -105,6 +119,8 @@ def build_config(args):
     if args.no_conformal:
         changes["conformal"] = False
     changes["precision"] = args.precision
+    changes["device"], changes["backend"] = args.device, args.backend
+    changes["decisions"] = args.decisions
     if args.conformal_per_class is not None:
         changes["conformal_per_class"] = args.conformal_per_class
     config = dataclasses.replace(config, **changes)
@@ -143,7 +159,10 @@ def run(args) -> int:
         import shutil
 
         shutil.rmtree(out / "store")
-    executor = make_executor(args.executor, args.workers, args.address)
+    # On CUDA the workers share the GPUs: each asks Ray for its share (episodes use its CPU).
+    executor = make_executor(args.executor, args.workers, args.address,
+                             gpus_per_worker=0.0 if config.device == "cpu"
+                             else 1.0 / max(args.workers, 1))
     started = provenance(seed=config.seed)  # the revision and time the run started with
     start = time.perf_counter()
     deadline = None if args.budget_min is None else start + 60.0 * args.budget_min
@@ -179,7 +198,7 @@ def _resolved_config(args):
         # Nothing is computed: "auto" means the precision the stored frames were made in.
         made_in = RunStore(Path(args.out) / "store").precisions()
         if made_in and config.precision not in made_in:
-            config = dataclasses.replace(config, precision=made_in[-1])
+            config = dataclasses.replace(config, precision=made_in[-1], backend=args.backend)
     return config
 
 

@@ -14,7 +14,12 @@ from typing import TYPE_CHECKING
 
 from drake_cert.certification.seeds import Purpose
 from drake_cert.config import load_conditions
-from drake_cert.experiments.reproduce_config import ReproduceConfig, calibration_seed, run_model
+from drake_cert.experiments.reproduce_config import (
+    ReproduceConfig,
+    calibration_seed,
+    evaluated_run_model,
+    run_model,
+)
 
 if TYPE_CHECKING:
     from drake_cert.experiments.run_store import RunStore
@@ -22,7 +27,8 @@ if TYPE_CHECKING:
 
 def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
                      conditions) -> float:
-    """The h pipeline's conformal beta for (preset, sigma): Mondrian split conformal on
+    """The h pipeline's conformal beta for (preset, sigma), ``model`` from :func:`run_model`
+    evaluated as the run evaluates it: Mondrian split conformal on
     ``calibration_per_class`` frames per label of the calibration split (DESIGN 3), with its own
     seed stream; infinite (the envelope) when too few frames for alpha_c."""
     from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
@@ -32,7 +38,8 @@ def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
     cal = load_split(preset, "calibration", conditions=conditions,
                      frames_per_class=c.calibration_per_class)
     calib = calibrate_conformal(
-        MedianSmoothedRegressor(model, sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
+        MedianSmoothedRegressor(evaluated_run_model(c, model), sigma, device=c.device),
+        cal.images, cal.stiffness_n_per_rad.tolist(),
         cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
         alpha_m=c.alpha_m, alpha_c=c.alpha_c,
         seed=calibration_seed(c, Purpose.REGRESSION_CALIBRATION, preset, sigma))
@@ -104,8 +111,9 @@ def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, co
 
     cal = load_split(preset, "calibration", conditions=conditions or load_conditions(),
                      frames_per_class=config.conformal_per_class)
-    classifier = SmoothedClassifier(run_model(config, preset, "classify", sigma),
-                                    len(cal.label_names), sigma)
+    classifier = SmoothedClassifier(
+        evaluated_run_model(config, run_model(config, preset, "classify", sigma)),
+        len(cal.label_names), sigma, device=config.device)
     return calibrate_robust_conformal(
         classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
         batch_size=min(config.batch_size, config.conformal_n),

@@ -228,11 +228,17 @@ class RayExecutor:
     authentication is settled here, before any work (:func:`cluster_auth_mode`).
     """
 
-    def __init__(self, workers: int = 2, address: str | None = None):
+    def __init__(self, workers: int = 2, address: str | None = None,
+                 gpus_per_worker: float = 0.0):
         if workers < 1:
             raise ConfigError(f"workers = {workers} must be >= 1")
+        if not 0.0 <= gpus_per_worker <= 1.0:
+            raise ConfigError(f"gpus_per_worker = {gpus_per_worker} must be in [0, 1]")
         check_cluster_address(address)
         self.workers, self.address = int(workers), address
+        # each worker's share of a GPU (Ray's num_gpus): its certificates sample on it, its
+        # episodes run on its CPU
+        self.gpus_per_worker = float(gpus_per_worker)
         self.auth_mode = cluster_auth_mode(address)
 
     def map(self, make_worker, tasks, progress=None, on_result=None, stop=None):
@@ -267,7 +273,7 @@ class RayExecutor:
         session.callback(ray.shutdown)
 
     def _map(self, ray, make_worker, tasks, progress, on_result, stop) -> list[Any]:
-        actor_class = ray.remote(num_cpus=1)(_Actor)
+        actor_class = ray.remote(num_cpus=1, num_gpus=self.gpus_per_worker)(_Actor)
         actors = [actor_class.remote(make_worker) for _ in range(self.workers)]
         pending = {}
         results: list[Any] = [None] * len(tasks)
@@ -308,10 +314,12 @@ def _project_root() -> str:
     return os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
-def make_executor(name: str, workers: int = 2, address: str | None = None) -> Executor:
-    """``local`` (default) or ``ray``."""
+def make_executor(name: str, workers: int = 2, address: str | None = None,
+                  gpus_per_worker: float = 0.0) -> Executor:
+    """``local`` (default) or ``ray`` (``gpus_per_worker``: each Ray worker's share of a GPU,
+    for work that samples on CUDA)."""
     if name == "local":
         return LocalExecutor()
     if name == "ray":
-        return RayExecutor(workers, address)
+        return RayExecutor(workers, address, gpus_per_worker)
     raise ConfigError(f"executor {name!r} is not one of {', '.join(EXECUTORS)}")

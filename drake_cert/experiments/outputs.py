@@ -95,7 +95,8 @@ def sweep_plot(summary: list[dict], config) -> bytes:
 
 
 def radius_plot(rows: list[dict], config) -> bytes:
-    """Histogram of g's certified radius (run-time label range) at the observed frame."""
+    """Histogram of g's certified radius (run-time label range) at the attacked frame, under
+    SA and EA at the main budget (the cells that keep Cohen's fixed n)."""
     from matplotlib.figure import Figure
 
     presets = list(config.presets)
@@ -104,7 +105,7 @@ def radius_plot(rows: list[dict], config) -> bytes:
     for j, p in enumerate(presets):
         for s in config.sigmas:
             radii = [r["certificate"] for r in rows if r["preset"] == p and r["pipeline"] == "g"
-                     and r["sigma"] == s and r["eps"] == config.eps]
+                     and r["sigma"] == s and r["eps"] == config.eps and r["attack"] != "none"]
             if radii:
                 axes[0, j].hist(radii, bins=np.linspace(0, max(max(radii), 1e-3), 20),
                                 alpha=0.5, label=f"sigma {s}")

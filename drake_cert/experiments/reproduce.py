@@ -33,6 +33,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.errors import ConfigError
 from drake_cert.experiments.calibrations import (
     calibration_beta,
     calibration_betas,
@@ -44,9 +45,11 @@ from drake_cert.experiments.reproduce_config import (
     FrameTask,
     ReproduceConfig,
     cell_seed,
+    evaluated_run_model,
     frame_indices,
     noise_cell,
     preset_key,
+    radius_cell,
     run_model,
 )
 from drake_cert.experiments.run_store import RunStore
@@ -74,9 +77,18 @@ class FrameWorker:
 
     # ------------------------------------------------------------------ loading (cached)
     def model(self, preset: str, task: str, sigma: float):
+        """The torch model on the CPU (what the attacks differentiate)."""
         key = (preset, task, sigma)
         if key not in self._models:
             self._models[key] = run_model(self.config, preset, task, sigma)
+        return self._models[key]
+
+    def evaluated(self, preset: str, task: str, sigma: float):
+        """The module the certificates sample (:func:`evaluated_run_model`)."""
+        key = (preset, task, sigma, "evaluated")
+        if key not in self._models:
+            self._models[key] = evaluated_run_model(self.config,
+                                                    self.model(preset, task, sigma))
         return self._models[key]
 
     def frames(self, preset: str):
@@ -116,13 +128,16 @@ class FrameWorker:
                      true_label=names[label], stiffness_n_per_rad=frame.stiffness_n_per_rad,
                      friction_mu=friction, seed=f"{c.seed}/{p_idx}/{task.position}")
         rows = []
-        perceived: dict = {}  # noise cell -> perception result (g_conformal reads g's)
+        attacked: dict = {}  # noise cell -> the attacked frame (g_conformal shares g's attack)
+        perceived: dict = {}  # perception block -> its result (a fixed-n g_conformal reads g's)
         for cell in c.cells():
             pipeline, sigma, kind, eps = cell
             attacker, perception, interval = self.blocks(task.preset, cell)
-            if noise_cell(cell) not in perceived:
-                perceived[noise_cell(cell)] = perception.perceive(attacker.perturb(frame), 0.0)
-            result = perceived[noise_cell(cell)]
+            if noise_cell(cell) not in attacked:
+                attacked[noise_cell(cell)] = attacker.perturb(frame)
+            if id(perception) not in perceived:
+                perceived[id(perception)] = perception.perceive(attacked[noise_cell(cell)], 0.0)
+            result = perceived[id(perception)]
             decision = interval.request(result)
             design = interval.designs[decision.design_index]
             outcome = self.episodes.outcome(design, frame.stiffness_n_per_rad, friction)
@@ -145,12 +160,14 @@ class FrameWorker:
         The attacker and the perception draw from the streams of the cell's seed
         (:func:`reproduce_config.cell_seed`) keyed by the frame's position, as a drive's blocks
         do by camera tick: distinct for every (preset, cell, frame). A g_conformal cell shares
-        the attacker and perception blocks of its g cell (:func:`reproduce_config.noise_cell`).
+        the attacker of its g cell (:func:`reproduce_config.noise_cell`) and, where the cell
+        keeps a fixed-n certificate, its perception block (one certificate, two intervals); a
+        cell decided sequentially (:meth:`decision_rule`) has its own perception block drawing
+        from the same streams, which stops once its own range is decided.
         """
         from drake_cert.synthesis.selection import preset_designs
         from drake_cert.systems.attacker import Attacker
         from drake_cert.systems.certified_interval import CertifiedInterval
-        from drake_cert.systems.perception_smoothing import PerceptionSmoothing
 
         key = (preset, cell)
         if key in self._blocks:
@@ -159,28 +176,27 @@ class FrameWorker:
         pipeline, sigma, kind, eps = cell
         task = "regress" if pipeline in ("f_reg", "h") else "classify"
         mode = "certified" if pipeline in ("g", "g_conformal", "h") else "base"
-        model = self.model(preset, task, sigma)
         labels = list(self.conditions.preset(preset).labels)
-        shared = (preset, "noise", noise_cell(cell))
-        if shared not in self._blocks:
-            seed = cell_seed(c, preset, cell)
-            attacker = Attacker(kind, eps=eps,
-                                target="smoothed" if mode == "certified" else "base",
-                                model=model, sigma=sigma, task=task, seed=seed,
-                                steps=c.attack_steps, noise_draws=c.attack_noise_draws)
-            perception = PerceptionSmoothing(
-                model, mode=mode, task=task, sigma=sigma if sigma > 0 else 1.0, n0=c.n0,
-                n=c.n, alpha=c.alpha, batch_size=min(c.batch_size, c.n), seed=seed,
-                label_names=labels, eps=eps)  # fixed-n CERTIFY: both g intervals read it
-            self._blocks[shared] = (attacker, perception)
-        attacker, perception = self._blocks[shared]
-        beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         conformal = None
         if pipeline == "g_conformal":
             if (preset, sigma) not in self._conformal:
                 self._conformal[(preset, sigma)] = conformal_calibration(c, preset, sigma,
                                                                          self.conditions)
             conformal = self._conformal[(preset, sigma)]
+        seed = cell_seed(c, preset, cell)
+        shared = (preset, "noise", noise_cell(cell))
+        if shared not in self._blocks:
+            attacker = Attacker(kind, eps=eps,
+                                target="smoothed" if mode == "certified" else "base",
+                                model=self.model(preset, task, sigma), sigma=sigma, task=task,
+                                seed=seed, steps=c.attack_steps,
+                                noise_draws=c.attack_noise_draws)
+            self._blocks[shared] = (attacker, self._perception(preset, cell, seed, "fixed"))
+        attacker, perception = self._blocks[shared]  # fixed n: both g intervals read it
+        rule = self.decision_rule(preset, cell)
+        if rule == "sequential":  # each interval decides its own range, from the same streams
+            perception = self._perception(preset, cell, seed, rule, conformal)
+        beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         interval = CertifiedInterval(preset_designs(self.designs, self.conditions, preset),
                                      self.conditions, preset, eps=eps, mode=mode, task=task,
                                      regression_beta=beta, conformal=conformal,
@@ -188,10 +204,54 @@ class FrameWorker:
         self._blocks[key] = (attacker, perception, interval)
         return self._blocks[key]
 
+    def decision_rule(self, preset: str, cell: tuple) -> str:
+        """"sequential" for a g cell read only as a decision at its budget (config
+        ``decisions``) where n samples can reach that budget; else "fixed" (Cohen's n0 + n,
+        whose votes both g intervals read)."""
+        from drake_cert.certification.intervals import candidate_ranges
+        from drake_cert.systems.perception_smoothing import check_decision_budget
+
+        c = self.config
+        pipeline, sigma, _, eps = cell
+        if c.decisions != "sequential" or pipeline not in ("g", "g_conformal") \
+                or radius_cell(c, cell):
+            return "fixed"
+        labels = list(self.conditions.preset(preset).labels)
+        try:
+            check_decision_budget(c.n, c.alpha, eps, sigma,
+                                  candidate_ranges(self.conditions, preset, labels))
+        except ConfigError:  # never certifiable sequentially: the fixed-n certificate decides
+            return "fixed"
+        return "sequential"
+
+    def _perception(self, preset: str, cell: tuple, seed: int, decision: str,
+                    conformal=None):
+        """The Diagram's perception block for one cell (the cells of one noise owner draw from
+        the same streams: the seed of :func:`noise_cell`)."""
+        from drake_cert.certification.intervals import candidate_ranges
+        from drake_cert.systems.perception_smoothing import PerceptionSmoothing
+
+        c = self.config
+        pipeline, sigma, _, eps = cell
+        task = "regress" if pipeline in ("f_reg", "h") else "classify"
+        labels = list(self.conditions.preset(preset).labels)
+        sequential = decision == "sequential"
+        return PerceptionSmoothing(
+            self.evaluated(preset, task, sigma), device=c.device,
+            mode="certified" if pipeline in ("g", "g_conformal", "h") else "base", task=task,
+            sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n, alpha=c.alpha,
+            batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels, eps=eps,
+            decision=decision, conformal=conformal if sequential else None,
+            ranges=candidate_ranges(self.conditions, preset, labels) if sequential else None)
+
     @staticmethod
     def prediction(result, names):
         if result.certificate is not None:
             return names[result.certificate.top_label]
+        if result.decision is not None:  # sequential: the label it certified through
+            return names[result.decision.top_label]
+        if result.conformal is not None:  # a sequential conformal set: the most votes
+            return names[int(result.conformal.counts.argmax())]
         if result.base_label is not None and result.task == "classify":
             return names[result.base_label]
         if result.regression is not None:

@@ -62,14 +62,43 @@ class ReproduceConfig:
     # "auto" is resolved on construction (sampler.resolve_precision), so results and the run
     # identity always name the arithmetic that ran
     seed: int = 0
+    # What evaluates the models' noisy samples (certificates and calibrations; the attacks'
+    # gradients always run in torch on the CPU, as on a machine without a GPU): "cpu" or a
+    # CUDA device, and on the CPU torch or ONNX Runtime ("auto": ONNX Runtime where installed
+    # and fp32, as in the Diagram). Resolved on construction; both are in the run identity.
+    device: str = "cpu"
+    backend: str = "auto"
+    # How g's cells read only as a decision at their budget (clean cells and the sweep's) are
+    # decided: "sequential" (stop once the label range at eps is decided either way; the
+    # robust conformal set likewise) or "fixed" (Cohen's n0 + n). The cells whose radius the
+    # tables print (g under SA and EA at the main budget) always keep fixed n.
+    decisions: str = "sequential"
 
     def __post_init__(self):
+        from drake_cert.certification.backends import BACKENDS, resolve_backend
         from drake_cert.certification.sampler import PRECISION_SETTINGS, resolve_precision
 
         if self.precision not in PRECISION_SETTINGS:
             raise ConfigError(f"precision {self.precision!r} is not one of "
                               f"{', '.join(PRECISION_SETTINGS)}")
         object.__setattr__(self, "precision", resolve_precision(self.precision))
+        if self.decisions not in ("sequential", "fixed"):
+            raise ConfigError(f"decisions {self.decisions!r} is not sequential or fixed")
+        if not (self.device == "cpu" or str(self.device).startswith("cuda")):
+            raise ConfigError(f"device {self.device!r} is not cpu or cuda[:N]")
+        if self.backend not in ("auto", *BACKENDS):
+            raise ConfigError(f"backend {self.backend!r} is not one of auto, "
+                              f"{', '.join(BACKENDS)}")
+        if self.device != "cpu":
+            if self.backend == "onnxruntime":
+                raise ConfigError("backend onnxruntime runs on the CPU; with a CUDA device the "
+                                  "models run in torch (backend auto or torch)")
+            object.__setattr__(self, "backend", "torch")
+        elif self.backend == "onnxruntime" and self.precision != "fp32":
+            # ONNX Runtime runs fp32 only: bf16 is torch's (the CLI refuses the pair if named)
+            object.__setattr__(self, "backend", "torch")
+        else:
+            object.__setattr__(self, "backend", resolve_backend(self.backend, self.precision))
 
     @staticmethod
     def quick(seed: int = 0) -> ReproduceConfig:
@@ -107,6 +136,7 @@ class ReproduceConfig:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
+        check_device(self.device)
 
     @property
     def pipelines(self) -> tuple[str, ...]:
@@ -191,10 +221,42 @@ class FrameTask:
     position: int  # which of the preset's chosen frames (0 .. frames - 1)
 
 
+def radius_cell(config: ReproduceConfig, cell: tuple[str, float, str, float]) -> bool:
+    """Whether the tables read a cell's certified radius (g and g_conformal under SA and EA at
+    the main budget): such a cell keeps Cohen's fixed-n certificate."""
+    pipeline, _, kind, eps = cell
+    return pipeline in ("g", "g_conformal") and kind != "none" and eps == config.eps
+
+
+def check_device(device: str) -> None:
+    """:class:`ConfigError` in one line when ``device`` is a CUDA device this machine lacks."""
+    if device == "cpu":
+        return
+    import torch
+
+    if not torch.cuda.is_available():
+        raise ConfigError(f"device {device!r}: CUDA is not available here (torch "
+                          f"{torch.__version__}); use --device cpu")
+
+
 def run_model(config: ReproduceConfig, preset: str, task: str, sigma: float):
-    """The shipped model of (preset, task, sigma) in the run's precision: the one module that
-    the run's attacks, certificates and calibrations all evaluate."""
+    """The shipped model of (preset, task, sigma) in the run's precision, a torch module on the
+    CPU: what the run's attacks differentiate (and, through :func:`evaluated_run_model`, what
+    its certificates and calibrations evaluate)."""
     from drake_cert.certification.sampler import with_precision
     from drake_cert.perception.models import load_model
 
     return with_precision(load_model(preset, task, sigma), config.precision)
+
+
+def evaluated_run_model(config: ReproduceConfig, model):
+    """The module the run's samplers call for ``model`` (from :func:`run_model`): the model
+    itself (torch on the CPU), its ONNX Runtime session (fp32; agrees with torch to float
+    rounding), or a copy on the run's CUDA device (the attack keeps the CPU original)."""
+    import copy
+
+    from drake_cert.certification.backends import evaluated_model
+
+    if config.device != "cpu":
+        return copy.deepcopy(model).to(config.device)
+    return evaluated_model(model, backend=config.backend, precision=config.precision)

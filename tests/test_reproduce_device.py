@@ -1,0 +1,108 @@
+"""Where a reproduction samples its models: --device cpu with torch gives the rows the run gave
+before the device existed; ONNX Runtime agrees with them to float rounding; CUDA is refused in
+one line where it is absent."""
+
+import dataclasses
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+
+from drake_cert.cli import main
+from drake_cert.errors import ConfigError
+from drake_cert.experiments.reproduce import FrameWorker
+from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
+from drake_cert.experiments.run_store import identity_parts
+
+# Rows of ReproduceConfig.quick() in fp32 (carla-like frame 0, rtk-like frame 1), computed by
+# the code before --device and --backend existed (git 1e73b73, torch on the CPU).
+BEFORE = Path(__file__).parent / "data" / "reproduce_quick_rows_cpu_torch.json"
+DECISION = ("predicted", "certified", "design_labels", "left_lane", "velocity_mps")
+FLOATS = ("interval_lo", "interval_hi", "certificate")
+
+
+def _config(**changes) -> ReproduceConfig:
+    # one preset, classification only: the cells it has draw the noise they draw in the full
+    # quick run (cell seeds are keyed by what the cell is)
+    return dataclasses.replace(ReproduceConfig.quick(), precision="fp32", presets=("carla-like",),
+                               sigmas=(0.25,), regression=False, conformal=False,
+                               decisions="fixed", **changes)
+
+
+@pytest.fixture(scope="module")
+def designs():
+    from drake_cert.config import load_conditions, load_settings, load_vehicle
+    from drake_cert.synthesis.table import synthesize_table
+
+    return synthesize_table(load_vehicle(), load_conditions(), load_settings())
+
+
+def _frame(config, designs) -> list[dict]:
+    """carla-like frame 0 computed alone on one thread (as reproduce.recompute_frame)."""
+    from drake_cert.threads import torch_threads
+
+    with torch_threads(1):
+        return FrameWorker(config, designs=designs)(FrameTask("carla-like", 0))
+
+
+def _before() -> dict:
+    rows = json.loads(BEFORE.read_text())
+    return {(r["pipeline"], r["sigma"], r["attack"], r["eps"]): r for r in rows
+            if r["preset"] == "carla-like" and r["position"] == 0}
+
+
+def _close(a, b) -> bool:
+    if isinstance(a, str) or isinstance(b, str):
+        return a == b
+    return a == b or math.isclose(float(a), float(b), rel_tol=1e-4, abs_tol=1e-6)
+
+
+def test_cpu_with_torch_gives_the_rows_of_the_run_before_the_device_existed(designs):
+    before = _before()
+    rows = _frame(_config(device="cpu", backend="torch"), designs)
+    assert len(rows) == 6  # f and g (sigma 0.25), clean, SA and EA
+    for r in rows:
+        old = before[(r["pipeline"], r["sigma"], r["attack"], r["eps"])]
+        assert all(r[k] == old[k] for k in DECISION), (r, old)
+        assert all(_close(r[k], old[k]) for k in FLOATS), (r, old)
+
+
+def test_onnx_runtime_takes_the_same_decisions_as_torch(designs):
+    pytest.importorskip("onnxruntime")
+    before = _before()
+    config = _config(backend="onnxruntime")
+    assert config.backend == "onnxruntime"
+    for r in _frame(config, designs):
+        old = before[(r["pipeline"], r["sigma"], r["attack"], r["eps"])]
+        assert all(_close(r[k], old[k]) for k in (*DECISION, *FLOATS)), (r, old)
+
+
+def test_the_device_and_backend_are_resolved_and_part_of_the_run_identity():
+    torch_cpu = _config(backend="torch")
+    assert (torch_cpu.device, torch_cpu.backend) == ("cpu", "torch")
+    settings = identity_parts(torch_cpu, [])["settings"]
+    assert (settings["device"], settings["backend"]) == ("cpu", "torch")
+    assert _config(backend="auto").backend in ("torch", "onnxruntime")  # never "auto"
+    with pytest.raises(ConfigError, match="not cpu or cuda"):
+        _config(device="tpu")
+    # bf16 runs in torch (ONNX Runtime is fp32 only); the command line refuses the pair
+    assert dataclasses.replace(_config(backend="onnxruntime"), precision="bf16").backend == \
+        "torch"
+
+
+def test_onnx_runtime_in_bf16_is_refused_in_one_line(tmp_path, capsys):
+    code = main(["reproduce", "--quick", "--backend", "onnxruntime", "--precision", "bf16",
+                 "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "evaluates in fp32" in err[0]
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+def test_cuda_is_refused_in_one_line_where_it_is_absent(tmp_path, capsys):
+    code = main(["reproduce", "--quick", "--device", "cuda", "--out", str(tmp_path / "r")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "CUDA is not available here" in err[0] and "--device cpu" in err[0]
+    assert not (tmp_path / "r").exists()  # refused before anything is written
