@@ -106,3 +106,35 @@ def test_cuda_is_refused_in_one_line_where_it_is_absent(tmp_path, capsys):
     assert code == 2 and len(err) == 1
     assert "CUDA is not available here" in err[0] and "--device cpu" in err[0]
     assert not (tmp_path / "r").exists()  # refused before anything is written
+
+
+def test_at_the_papers_budget_every_pipeline_runs_and_a_budget_beyond_reach_draws_nothing(
+        designs):
+    """eps = 1 (the paper's delta = 255) has g and h at every sigma and f_reg; where sigma is
+    so small that n samples could never certify eps, the cell is the envelope without any
+    attack or sample (what sampling would have given)."""
+    from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS, max_certifiable_radius
+
+    default = ReproduceConfig(precision="fp32")
+    at_paper = {(p, s) for p, s, _, e in default.cells() if e == PAPER_BUDGET_EPS}
+    assert {("g", s) for s in default.sigmas} | {("h", s) for s in default.sigmas} | \
+        {("f_reg", 0.0), ("f", 0.0)} <= at_paper
+    config = dataclasses.replace(ReproduceConfig.quick(), precision="fp32",
+                                 presets=("carla-like",), sigmas=(0.25,), conformal=False,
+                                 sweep_eps=(0.25, PAPER_BUDGET_EPS))
+    assert max_certifiable_radius(0.25, config.n, config.alpha) < PAPER_BUDGET_EPS
+    worker = FrameWorker(config, designs=designs, betas={("carla-like", 0.25): 5000.0})
+    assert worker.decision_rule("carla-like", ("g", 0.25, "sa", 1.0)) == "never"
+    assert worker.decision_rule("carla-like", ("h", 0.25, "sa", 1.0)) == "never"
+    assert worker.decision_rule("carla-like", ("g", 0.25, "sa", 0.25)) == "fixed"  # a radius
+    assert worker.decision_rule("carla-like", ("g", 0.25, "none", 0.25)) == "sequential"
+    from drake_cert.threads import torch_threads
+
+    with torch_threads(1):
+        rows = worker(FrameTask("carla-like", 0))
+    never = [r for r in rows if r["eps"] == 1.0 and r["pipeline"] in ("g", "h")]
+    assert len(never) == 4 and not any(r["certified"] for r in never)
+    for r in never:
+        interval = (r["interval_lo"], r["interval_hi"])
+        assert interval == tuple(worker.conditions.envelope("carla-like")), r
+    assert {r["pipeline"] for r in rows if r["eps"] == 1.0} == {"f", "g", "f_reg", "h"}

@@ -91,7 +91,9 @@ def test_at_the_papers_budget_its_attacked_velocities_stand_beside_ours():
     section = text.split("### At the paper's budget: eps = 1")[1].split("###")[0]
     assert "| f velocity under EA (m/s) | 12.00 (27.36) | 12.00 (27.83) | 12.00 (25.35) |" \
         in section
-    assert "| g velocity under EA (m/s) | 12.00 (29.41) | 12.00 (28.10) | 12.00 (28.12) |" \
+    assert "| g sigma 0.5: velocity under EA (m/s) | 12.00 (29.41) | 12.00 (28.10) | " \
+        "12.00 (28.12) |" in section
+    assert "| g sigma 0.5: instability under SA (%) / certified (%) | 100.00 / 100.00 |" \
         in section
     assert "| f instability under SA (%) | 100.00 | 100.00 | 100.00 |" in section
     assert "| paper's f instability under SA | 200.00 | 37.50 | 61.50 |" in section

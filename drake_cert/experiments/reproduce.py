@@ -47,6 +47,7 @@ from drake_cert.experiments.reproduce_config import (
     cell_seed,
     evaluated_run_model,
     frame_indices,
+    max_certifiable_radius,
     noise_cell,
     preset_key,
     radius_cell,
@@ -133,7 +134,9 @@ class FrameWorker:
         for cell in c.cells():
             pipeline, sigma, kind, eps = cell
             attacker, perception, interval = self.blocks(task.preset, cell)
-            if noise_cell(cell) not in attacked:
+            if attacker is None:  # a cell that never certifies: no attack can change it
+                attacked[noise_cell(cell)] = frame
+            elif noise_cell(cell) not in attacked:
                 attacked[noise_cell(cell)] = attacker.perturb(frame)
             if id(perception) not in perceived:
                 perceived[id(perception)] = perception.perceive(attacked[noise_cell(cell)], 0.0)
@@ -163,11 +166,10 @@ class FrameWorker:
         the attacker of its g cell (:func:`reproduce_config.noise_cell`) and, where the cell
         keeps a fixed-n certificate, its perception block (one certificate, two intervals); a
         cell decided sequentially (:meth:`decision_rule`) has its own perception block drawing
-        from the same streams, which stops once its own range is decided.
+        from the same streams, which stops once its own range is decided; a cell that never
+        certifies has no attacker (None) and a :class:`NeverCertifies` perception.
         """
-        from drake_cert.synthesis.selection import preset_designs
         from drake_cert.systems.attacker import Attacker
-        from drake_cert.systems.certified_interval import CertifiedInterval
 
         key = (preset, cell)
         if key in self._blocks:
@@ -176,7 +178,6 @@ class FrameWorker:
         pipeline, sigma, kind, eps = cell
         task = "regress" if pipeline in ("f_reg", "h") else "classify"
         mode = "certified" if pipeline in ("g", "g_conformal", "h") else "base"
-        labels = list(self.conditions.preset(preset).labels)
         conformal = None
         if pipeline == "g_conformal":
             if (preset, sigma) not in self._conformal:
@@ -185,6 +186,11 @@ class FrameWorker:
             conformal = self._conformal[(preset, sigma)]
         seed = cell_seed(c, preset, cell)
         shared = (preset, "noise", noise_cell(cell))
+        rule = self.decision_rule(preset, cell)
+        if rule == "never":
+            self._blocks[key] = (None, NeverCertifies(self.evaluated(preset, task, sigma), task,
+                                                      c.device), self._interval(preset, cell))
+            return self._blocks[key]
         if shared not in self._blocks:
             attacker = Attacker(kind, eps=eps,
                                 target="smoothed" if mode == "certified" else "base",
@@ -193,26 +199,45 @@ class FrameWorker:
                                 noise_draws=c.attack_noise_draws)
             self._blocks[shared] = (attacker, self._perception(preset, cell, seed, "fixed"))
         attacker, perception = self._blocks[shared]  # fixed n: both g intervals read it
-        rule = self.decision_rule(preset, cell)
         if rule == "sequential":  # each interval decides its own range, from the same streams
             perception = self._perception(preset, cell, seed, rule, conformal)
-        beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
-        interval = CertifiedInterval(preset_designs(self.designs, self.conditions, preset),
-                                     self.conditions, preset, eps=eps, mode=mode, task=task,
-                                     regression_beta=beta, conformal=conformal,
-                                     label_names=labels)
-        self._blocks[key] = (attacker, perception, interval)
+        self._blocks[key] = (attacker, perception, self._interval(preset, cell, conformal))
         return self._blocks[key]
 
+    def _interval(self, preset: str, cell: tuple, conformal=None):
+        """The Diagram's certified-interval block for one cell."""
+        from drake_cert.synthesis.selection import preset_designs
+        from drake_cert.systems.certified_interval import CertifiedInterval
+
+        pipeline, sigma, _, eps = cell
+        beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
+        return CertifiedInterval(
+            preset_designs(self.designs, self.conditions, preset), self.conditions, preset,
+            eps=eps, mode="certified" if pipeline in ("g", "g_conformal", "h") else "base",
+            task="regress" if pipeline in ("f_reg", "h") else "classify", regression_beta=beta,
+            conformal=conformal, label_names=list(self.conditions.preset(preset).labels))
+
     def decision_rule(self, preset: str, cell: tuple) -> str:
-        """"sequential" for a g cell read only as a decision at its budget (config
+        """"never" for a certifying cell whose budget n samples can never certify (its rows
+        are the envelope's, with no attack and no sample: the outcome whatever the frame);
+        "sequential" for a g cell read only as a decision at its budget (config
         ``decisions``) where n samples can reach that budget; else "fixed" (Cohen's n0 + n,
         whose votes both g intervals read)."""
         from drake_cert.certification.intervals import candidate_ranges
+        from drake_cert.certification.statistics import percentile_bound_indices
+        from drake_cert.errors import CertificationError
         from drake_cert.systems.perception_smoothing import check_decision_budget
 
         c = self.config
         pipeline, sigma, _, eps = cell
+        if pipeline == "h":
+            try:
+                percentile_bound_indices(c.n, eps, sigma, c.alpha)
+            except CertificationError:
+                return "never"
+        if pipeline in ("g", "g_conformal") and \
+                max_certifiable_radius(sigma, c.n, c.alpha) <= eps:
+            return "never"
         if c.decisions != "sequential" or pipeline not in ("g", "g_conformal") \
                 or radius_cell(c, cell):
             return "fixed"
@@ -269,6 +294,34 @@ class FrameWorker:
             return 0.0
         safe = self.conditions.safe_set(preset, names[cert.top_label])
         return float(cert.radius_for([names.index(m) for m in safe]))
+
+
+class NeverCertifies:
+    """Perception for a cell whose budget its certificate can never reach (a radius beyond
+    what n samples can certify at alpha): the result carries no certificate, so the interval is
+    the envelope, as sampling would have made it; no sample is drawn. ``predicted`` is the
+    base model's output on the frame."""
+
+    def __init__(self, model, task: str, device: str = "cpu"):
+        import torch
+
+        self.model, self.task, self.device = model.eval(), task, torch.device(device)
+
+    def perceive(self, frame, time_s: float):
+        import torch
+
+        from drake_cert.systems.perception_smoothing import PerceptionResult
+
+        with torch.inference_mode():
+            out = self.model(frame.image.float()[None].to(self.device))
+        classify = self.task == "classify"
+        return PerceptionResult(
+            time_s=float(time_s), tick=frame.tick, position_m=frame.position_m, frame_ok=True,
+            error="", mode="certified", task=self.task,
+            base_label=int(out.argmax(dim=1)[0]) if classify else None,
+            base_value_n_per_rad=None if classify else float(out.reshape(-1)[0]),
+            label_index=frame.label_index, stiffness_n_per_rad=frame.stiffness_n_per_rad,
+            friction_mu=frame.friction_mu, attack=frame.attack)
 
 
 def tasks_for(config: ReproduceConfig) -> list[FrameTask]:

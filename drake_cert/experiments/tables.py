@@ -335,13 +335,13 @@ def _f_tables(summary: list[dict], presets: list[str], eps: float, clean: dict) 
 
 
 def _paper_budget_table(summary: list[dict], config, presets: list[str]) -> list[str]:
-    """f, and g at the sweep's sigma, at eps = delta / 255: the one budget where the paper's
-    attacked numbers stand beside ours (in parentheses where the metric is the same)."""
-    e, s = PAPER_BUDGET_AS_EPS, config.sweep_sigma
+    """Every pipeline at eps = delta / 255, the one budget where the paper's attacked numbers
+    stand beside ours (in parentheses where the metric is the same), g and h per sigma."""
+    e = PAPER_BUDGET_AS_EPS
     if not _cell(summary, pipeline="f", attack="sa", eps=e):
         return []
     lines = ["", f"### At the paper's budget: eps = {e:g} (its delta = {PAPER_BUDGET} read as "
-             f"an L2 norm over [0, 255] pixel values); g at sigma = {s}", "",
+             "an L2 norm over [0, 255] pixel values)", "",
              _preset_head(presets),
              _ours_row(summary, presets, "f accuracy under SA (%)", "accuracy", "f", "sa", e,
                        None),
@@ -355,20 +355,42 @@ def _paper_budget_table(summary: list[dict], config, presets: list[str]) -> list
              _ours_row(summary, presets, "f velocity under EA (m/s)", "velocity_mps", "f", "ea",
                        e, "f_attack")]
     for pipe in _g_pipelines(summary):
-        name = "g" if pipe == "g" else "g_conformal"
-        lines += [_ours_row(summary, presets, f"{name} instability under SA (%)",
-                            "instability_pct", pipe, "sa", e, None, sigma=s),
-                  _ours_row(summary, presets, f"{name} certified under SA (%)", "certified_pct",
-                            pipe, "sa", e, None, sigma=s),
-                  "| " + f"{name} velocity under EA (m/s)" + " | " + " | ".join(_ours_vs_paper(
-                      _cell(summary, preset=p, pipeline=pipe, attack="ea", eps=e, sigma=s),
-                      PAPER.get(("g_ea", p, s)) if pipe == "g" else None, "velocity_mps")
-                      for p in presets) + " |",
-                  _ours_row(summary, presets, f"{name} certified under EA (%)", "certified_pct",
-                            pipe, "ea", e, None, sigma=s)]
-    lines.append(f"| paper's g instability under SA at sigma = {s} | " + " | ".join(
-        _paper(PAPER.get(("g_sa", p, s)), "instability") for p in presets) + " |")
+        for s in _sigmas_at(summary, pipe, e):
+            name = f"{pipe} sigma {s:g}"
+            lines += [_instability_certified_row(summary, presets, name, pipe, e, s),
+                      "| " + f"{name}: velocity under EA (m/s)" + " | " + " | ".join(
+                          _ours_vs_paper(_cell(summary, preset=p, pipeline=pipe, attack="ea",
+                                               eps=e, sigma=s),
+                                         PAPER.get(("g_ea", p, s)) if pipe == "g" else None,
+                                         "velocity_mps") for p in presets) + " |"]
+            if pipe == "g":
+                lines.append(f"| paper's g instability under SA at sigma = {s:g} | " + " | ".join(
+                    _paper(PAPER.get(("g_sa", p, s)), "instability") for p in presets) + " |")
+    if _cell(summary, pipeline="f_reg", attack="sa", eps=e):
+        lines += [_ours_row(summary, presets, "f_reg instability under SA (%)",
+                            "instability_pct", "f_reg", "sa", e, None),
+                  _paper_row(presets, "paper's f_reg instability under SA", "f_reg_attack",
+                             "instability"),
+                  _ours_row(summary, presets, "f_reg velocity under EA (m/s)", "velocity_mps",
+                            "f_reg", "ea", e, "f_reg_attack")]
+        lines += [_instability_certified_row(summary, presets, f"h sigma {s:g}", "h", e, s)
+                  for s in _sigmas_at(summary, "h", e)]
     return lines
+
+
+def _sigmas_at(summary: list[dict], pipeline: str, eps: float) -> list[float]:
+    """The sigmas of ``pipeline``'s SA cells at ``eps``."""
+    return sorted({c["sigma"] for c in summary if c["pipeline"] == pipeline
+                   and c["eps"] == eps and c["attack"] == "sa"})
+
+
+def _instability_certified_row(summary, presets, name, pipeline, eps, sigma) -> str:
+    """``instability / certified`` (%) under SA, per preset."""
+    cells = (_cell(summary, preset=p, pipeline=pipeline, attack="sa", eps=eps, sigma=sigma)
+             for p in presets)
+    return (f"| {name}: instability under SA (%) / certified (%) | " + " | ".join(
+        f"{_num(_safe(c, 'instability_pct'))} / {_num(_safe(c, 'certified_pct'))}"
+        for c in cells) + " |")
 
 
 def _g_clean_table(summary: list[dict], config, presets: list[str]) -> list[str]:
