@@ -264,9 +264,16 @@ class CertifiedInterval(LeafSystem):
             index = self._narrowest_holding((v, v))
             return (self.envelope_decision(p) if index is None
                     else self._decision(p, index, "base", 0.0))
-        if p.regression is None:
+        if p.median is not None:  # sequential: the candidate's ends bound the median
+            if not p.median.certified:
+                return self.envelope_decision(p)
+            lower, upper = p.median.interval  # an open end: the design reaches the envelope's
+            lower = lower if math.isfinite(lower) else self.envelope[0] / self.stiffness_scale
+            upper = upper if math.isfinite(upper) else self.envelope[1] / self.stiffness_scale
+        elif p.regression is None:
             return self.envelope_decision(p)
-        _, lower, upper = p.regression
+        else:
+            _, lower, upper = p.regression
         k = self.stiffness_scale  # the reference tire's stiffness -> this vehicle's
         interval = runtime_interval(k * lower, k * upper, k * self.beta, self.envelope)
         if interval == tuple(float(x) for x in self.envelope):

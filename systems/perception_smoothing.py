@@ -48,7 +48,7 @@ from drake_cert.certification.conformal import (
     RobustConformalCalibration,
     sequential_label_set,
 )
-from drake_cert.certification.regressor import MedianSmoothedRegressor
+from drake_cert.certification.regressor import MedianDecision, MedianSmoothedRegressor
 from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import look_plan, percentile_bound_indices
@@ -74,6 +74,7 @@ class PerceptionResult:
     certificate: ClassCertificate | None = None  # certified classification (fixed n)
     decision: SequentialDecision | None = None  # certified classification (sequential)
     conformal: ConformalDecision | None = None  # robust conformal label set (sequential)
+    median: MedianDecision | None = None  # certified regression (sequential)
     samples: int = 0  # noisy samples drawn at this tick (selection included)
     base_label: int | None = None  # raw label of f (classification, both modes)
     regression: tuple[float, float, float] | None = None  # certified (median, lower, upper)
@@ -124,10 +125,12 @@ class PerceptionSmoothing(LeafSystem):
         eps: regression budget of the median bounds (L2, pixel units).
         frame_size: expected frames are [3, frame_size, frame_size].
         compile: compile the model for the smoothing (see :class:`SmoothedClassifier`).
-        decision: "sequential" or "fixed" (classification; regression is always fixed-n).
+        decision: "sequential" or "fixed" (regression: sequential only with ``ranges``).
         ranges: sequential only: the candidate label ranges, most preferred first
             (:func:`drake_cert.certification.intervals.candidate_ranges`); n0 > 0 keeps those
-            holding the selection's top label; None: the top label alone.
+            holding the selection's top label; None: the top label alone. Regression: the
+            candidate intervals of the median (N/rad,
+            :func:`drake_cert.certification.intervals.median_candidates`), required.
         alpha_spending: an :class:`~drake_cert.certification.alpha_spending.AlphaSpending`:
             the decision of camera tick k is taken at ``alpha_spending.alpha(k)`` (every
             decision of the drive holds at once with probability >= 1 - its total) instead of
@@ -160,7 +163,8 @@ class PerceptionSmoothing(LeafSystem):
         self.model = model.eval()
         self.device = torch.device(device)
         self.mode, self.task = mode, task
-        self.decision = decision if task == "classify" else "fixed"
+        # regression decides sequentially only over given candidate intervals (``ranges``)
+        self.decision = decision if task == "classify" or ranges is not None else "fixed"
         self.ranges = ranges
         self.n0, self.n = int(n0), int(n)
         self.alpha_spending = alpha_spending
@@ -186,7 +190,8 @@ class PerceptionSmoothing(LeafSystem):
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
                                                   compile=compile, device=device)
             else:
-                percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
+                if self.decision == "fixed":
+                    percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
                 self._smooth = MedianSmoothedRegressor(model, sigma, compile=compile,
                                                        device=device)
 
@@ -257,6 +262,11 @@ class PerceptionSmoothing(LeafSystem):
                 if not math.isfinite(value):
                     raise CertificationError("regressor returned a non-finite stiffness")
                 return dataclasses.replace(base, base_value_n_per_rad=value)
+            if self.decision == "sequential":
+                ranges = list(self.ranges)
+                m = self._smooth.decide(x, self.eps, alpha, self.n, self.batch_size,
+                                        lambda v: ranges, seed=seed)
+                return dataclasses.replace(base, median=m, samples=m.samples)
             median, lower, upper = self._smooth.certify_interval(x, self.eps, self.n, alpha,
                                                                  self.batch_size, seed=seed)
             return dataclasses.replace(base, regression=(median, lower, upper), samples=self.n)

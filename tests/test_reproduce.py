@@ -29,6 +29,13 @@ def read_csv(path):
 
 
 def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
+    # meta.json records the workers' CPU time per stage beside the wall time
+    meta = json.loads((quick_local / "meta.json").read_text())
+    cpu = meta["total_cpu_s"]
+    assert cpu["frames"] > 0 and cpu["calibration_h"] > 0 and cpu["calibration_conformal"] > 0
+    assert cpu["all"] == pytest.approx(cpu["frames"] + cpu["calibration_h"]
+                                       + cpu["calibration_conformal"], abs=0.11)
+    assert cpu["invocations_without"] == 0 and meta["runs"][-1]["cpu_s"]["frames"] > 0
     rows = read_csv(quick_local / "results.csv")
     assert set(COLUMNS) <= set(rows[0])
     presets = {r["preset"] for r in rows}

@@ -33,6 +33,35 @@ def runtime_interval(lower: float, upper: float, beta: float,
     return float(lo), float(hi)
 
 
+INSIDE_N_PER_RAD = 1.0  # how far inside a design's ends a sequential median decision stays
+
+
+def median_candidates(designs, beta: float,
+                      envelope: tuple[float, float]) -> list[tuple[float, float]]:
+    """Candidate intervals for a sequential decision on the smoothed median
+    (:meth:`MedianSmoothedRegressor.decide`), most preferred first: per design narrower than
+    the envelope (narrowest, then slowest, first, as the fixed-n interval picks), the interval
+    its run-time interval ``[lower - beta, upper + beta]`` (clipped to the envelope,
+    :func:`runtime_interval`) stays inside when the median bounds do: its ends moved inward by
+    beta and :data:`INSIDE_N_PER_RAD` more (so that the run-time interval never holds a
+    boundary the design shares with a label of less friction), or open where the design
+    reaches the envelope's end. Designs narrower than 2 beta have none. N/rad."""
+    env_lo, env_hi = (float(e) for e in envelope)
+    if not math.isfinite(beta):
+        return []
+    out = []
+    for d in sorted(designs, key=lambda d: (d.stiffness_hi_n_per_rad - d.stiffness_lo_n_per_rad,
+                                            d.speed_mps)):
+        lo, hi = d.stiffness_lo_n_per_rad, d.stiffness_hi_n_per_rad
+        if lo <= env_lo and hi >= env_hi:
+            continue  # the envelope: what an abstention gives anyway
+        inside = beta + INSIDE_N_PER_RAD
+        c = (lo + inside if lo > env_lo else -math.inf, hi - inside if hi < env_hi else math.inf)
+        if c[0] <= c[1] and c not in out:
+            out.append(c)
+    return out
+
+
 class StiffnessBounds:
     """``interval`` and ``width_n_per_rad`` of a run-time interval with fields
     ``stiffness_lo_n_per_rad`` and ``stiffness_hi_n_per_rad`` (N/rad)."""

@@ -170,7 +170,8 @@ def run(args) -> int:
         else (lambda: time.perf_counter() > deadline)
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())  # once
     store = RunStore(out / "store")
-    rows = _reproduce_with_progress(config, executor, store, stop, designs)
+    cpu: dict = {}  # the workers' CPU seconds per stage, this invocation
+    rows = _reproduce_with_progress(config, executor, store, stop, designs, cpu)
     wall = time.perf_counter() - start
     done = {p: len({r["position"] for r in rows if r["preset"] == p}) for p in config.presets}
     complete = all(k == config.frames for k in done.values())
@@ -182,7 +183,8 @@ def run(args) -> int:
         print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "frames_done": done,
                           "complete": False}))
         return 0
-    _write_reproduction(args, config, out, store, designs, rows, started, wall, done, complete)
+    _write_reproduction(args, config, out, store, designs, rows, started, wall, done, complete,
+                        cpu)
     return 0
 
 
@@ -202,7 +204,7 @@ def _resolved_config(args):
     return config
 
 
-def _reproduce_with_progress(config, executor, store, stop, designs) -> list[dict]:
+def _reproduce_with_progress(config, executor, store, stop, designs, cpu) -> list[dict]:
     """The reproduction's frame rows, with one progress bar per phase."""
     from drake_cert.cli.progress import progress_bar
     from drake_cert.experiments.reproduce import run_reproduction
@@ -219,14 +221,14 @@ def _reproduce_with_progress(config, executor, store, stop, designs) -> list[dic
 
     try:
         return run_reproduction(config, executor, progress=progress, store=store, stop=stop,
-                                designs=designs)
+                                designs=designs, cpu=cpu)
     finally:
         for b in bars:
             b.close()
 
 
 def _write_reproduction(args, config, out, store, designs, rows, started, wall, done,
-                        complete) -> None:
+                        complete, cpu) -> None:
     """Log the invocation, write the tables, claims and meta under ``out`` and print the
     summary line."""
     from drake_cert.config import load_conditions
@@ -235,7 +237,7 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
     from drake_cert.io import provenance
 
     runs = log_run(out / "store" / "runs.json", dict(
-        started, wall_s=round(wall, 1), executor=args.executor,
+        started, wall_s=round(wall, 1), cpu_s=cpu, executor=args.executor,
         workers=args.workers if args.executor == "ray" else 1, frames_done=done))
     summary = tables.summarize(rows, config.eps, config.seed)
     # The frames' revisions lead: the tables are theirs; this invocation only wrote them.
@@ -245,15 +247,28 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
                 wall_s=round(wall, 1),
                 executor=args.executor, workers=args.workers if args.executor == "ray" else 1,
                 frame_cells=len(rows), frames_done=done, complete=complete,
-                total_wall_s=round(sum(r["wall_s"] for r in runs), 1), runs=runs)
+                total_wall_s=round(sum(r["wall_s"] for r in runs), 1),
+                total_cpu_s=_total_cpu(runs), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
                                     plots=not args.no_plots, designs=designs)
     document = json.loads((out / "claims.json").read_text())
     holds = {p: c["holds"] for p, c in claims.preset_claims(document).items()}
     paper = document.get("paper_claims", [])
-    print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "cells": len(summary),
+    print(json.dumps({"out": str(out), "wall_s": round(wall, 1),
+                      "cpu_s": round(sum(cpu.values()), 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
                       "paper_claims": paper_claims.verdict_counts(paper),
                       "paper_claims_failing": [paper_claims.label(c) for c in paper
                                                if c["holds"] is False],
                       "claims_hold": holds, "files": [str(p) for p in written]}))
+
+
+def _total_cpu(runs: list[dict]) -> dict:
+    """The workers' CPU seconds per stage over every invocation that recorded them, and their
+    sum (``invocations_without``: earlier invocations that did not record CPU time)."""
+    total: dict = {}
+    for run in runs:
+        for stage, seconds in (run.get("cpu_s") or {}).items():
+            total[stage] = round(total.get(stage, 0.0) + seconds, 1)
+    return dict(total, all=round(sum(total.values()), 1),
+                invocations_without=sum("cpu_s" not in r for r in runs))

@@ -65,26 +65,32 @@ class CalibrationWorker:
 
 def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
                      put: Callable[[dict], None], executor=None,
-                     progress: Callable[[int], None] | None = None) -> dict:
+                     progress: Callable[[int], None] | None = None,
+                     spent: list[float] | None = None) -> dict:
     """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
     ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
-    ``put(stored)`` as it arrives (a stopped run keeps them)."""
-    from drake_cert.experiments.executors import LocalExecutor
+    ``put(stored)`` as it arrives (a stopped run keeps them); the workers' CPU seconds are
+    appended to ``spent``."""
+    from drake_cert.experiments.executors import LocalExecutor, cpu_timed
 
     todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
 
-    def keep(index: int, value) -> None:
+    def keep(index: int, result) -> None:
+        value, cpu_s = result
         stored[(todo[index].preset, todo[index].sigma)] = value
+        if spent is not None:
+            spent.append(cpu_s)
         put(stored)
 
     if progress is not None:
         progress(len(tasks) - len(todo))
-    (executor or LocalExecutor()).map(make_worker, todo, progress, on_result=keep)
+    (executor or LocalExecutor()).map(cpu_timed(make_worker), todo, progress, on_result=keep)
     return {(t.preset, t.sigma): stored[(t.preset, t.sigma)] for t in tasks}
 
 
 def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | None = None,
-                      identity: str = "", progress: Callable[[int], None] | None = None) -> dict:
+                      identity: str = "", progress: Callable[[int], None] | None = None,
+                      spent: list[float] | None = None) -> dict:
     """Every (preset, sigma) beta of the run, spread over ``executor`` before the frames (read
     back from ``store`` when it holds them under ``identity``)."""
     if not config.regression:
@@ -93,7 +99,7 @@ def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | 
     stored = store.betas(identity) if store is not None else {}
     put = (lambda b: store.put_betas(identity, b)) if store is not None else (lambda b: None)
     return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
-                            progress)
+                            progress, spent)
 
 
 def conformal_sigmas(config: ReproduceConfig) -> list[float]:
@@ -131,8 +137,8 @@ class ConformalWorker:
 
 
 def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunStore | None = None,
-                           identity: str = "", progress: Callable[[int], None] | None = None
-                           ) -> dict:
+                           identity: str = "", progress: Callable[[int], None] | None = None,
+                           spent: list[float] | None = None) -> dict:
     """g's robust conformal calibration for every (preset, sigma) the run certifies with
     (empty without the pipeline g_conformal), spread over ``executor`` and kept in ``store``
     like the betas; each pair's numbers are those it gets computed alone."""
@@ -142,4 +148,4 @@ def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunSto
     stored = store.conformal(identity) if store is not None else {}
     put = (lambda c: store.put_conformal(identity, c)) if store is not None else (lambda c: None)
     return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
-                            progress)
+                            progress, spent)

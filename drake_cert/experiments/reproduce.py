@@ -220,9 +220,10 @@ class FrameWorker:
     def decision_rule(self, preset: str, cell: tuple) -> str:
         """"never" for a certifying cell whose budget n samples can never certify (its rows
         are the envelope's, with no attack and no sample: the outcome whatever the frame);
-        "sequential" for a g cell read only as a decision at its budget (config
-        ``decisions``) where n samples can reach that budget; else "fixed" (Cohen's n0 + n,
-        whose votes both g intervals read)."""
+        "sequential" (config ``decisions``) for a g cell read only as a decision at its budget
+        where n samples can reach that budget, and for h where its beta leaves candidate
+        intervals; else "fixed" (Cohen's n0 + n, whose votes both g intervals read; h's
+        percentile bounds)."""
         from drake_cert.certification.intervals import candidate_ranges
         from drake_cert.certification.statistics import percentile_bound_indices
         from drake_cert.errors import CertificationError
@@ -238,8 +239,11 @@ class FrameWorker:
         if pipeline in ("g", "g_conformal") and \
                 max_certifiable_radius(sigma, c.n, c.alpha) <= eps:
             return "never"
-        if c.decisions != "sequential" or pipeline not in ("g", "g_conformal") \
-                or radius_cell(c, cell):
+        if c.decisions != "sequential" or radius_cell(c, cell):
+            return "fixed"
+        if pipeline == "h":  # its median decided over the designs' candidate intervals
+            return "sequential" if self._median_candidates(preset, sigma) else "fixed"
+        if pipeline not in ("g", "g_conformal"):
             return "fixed"
         labels = list(self.conditions.preset(preset).labels)
         try:
@@ -261,13 +265,27 @@ class FrameWorker:
         task = "regress" if pipeline in ("f_reg", "h") else "classify"
         labels = list(self.conditions.preset(preset).labels)
         sequential = decision == "sequential"
+        if sequential and pipeline == "h":
+            ranges = self._median_candidates(preset, sigma)
+        elif sequential:
+            ranges = candidate_ranges(self.conditions, preset, labels)
+        else:
+            ranges = None
         return PerceptionSmoothing(
             self.evaluated(preset, task, sigma), device=c.device,
             mode="certified" if pipeline in ("g", "g_conformal", "h") else "base", task=task,
             sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n, alpha=c.alpha,
             batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels, eps=eps,
-            decision=decision, conformal=conformal if sequential else None,
-            ranges=candidate_ranges(self.conditions, preset, labels) if sequential else None)
+            decision=decision, conformal=conformal if sequential else None, ranges=ranges)
+
+    def _median_candidates(self, preset: str, sigma: float) -> list:
+        """h's candidate intervals of the median at (preset, sigma), from the preset's designs
+        and its beta (:func:`median_candidates`; none with an infinite beta)."""
+        from drake_cert.certification.intervals import median_candidates
+        from drake_cert.synthesis.selection import preset_designs
+
+        return median_candidates(preset_designs(self.designs, self.conditions, preset),
+                                 self.beta(preset, sigma), self.conditions.envelope(preset))
 
     @staticmethod
     def prediction(result, names):
@@ -334,7 +352,7 @@ def run_reproduction(config: ReproduceConfig, executor=None,
                      progress: Callable[[str, int], Callable[[int], None]] | None = None,
                      store: RunStore | None = None,
                      stop: Callable[[], bool] | None = None,
-                     designs: list | None = None) -> list[dict]:
+                     designs: list | None = None, cpu: dict | None = None) -> list[dict]:
     """Every per-frame row of the reproduction, in (preset, frame, cell) order.
 
     ``designs``: the design table of the shipped vehicle, conditions and settings (synthesized
@@ -343,8 +361,10 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     With a ``store``, finished frames and betas are read back from it and new ones written to
     it as they arrive; once ``stop()`` is True no new frame starts and the rows of the frames
     finished so far come back (fewer than ``frames`` per preset: the tables count them).
+    ``cpu``, when given, gets the CPU seconds its workers spent per stage
+    (``calibration_h``, ``calibration_conformal``, ``frames``).
     """
-    from drake_cert.experiments.executors import LocalExecutor
+    from drake_cert.experiments.executors import LocalExecutor, cpu_timed
     from drake_cert.synthesis.table import synthesize_table
 
     config.validate()
@@ -362,25 +382,33 @@ def run_reproduction(config: ReproduceConfig, executor=None,
     if todo and store is not None:
         store.check_arithmetic(identity, config.precision)  # no run finished in other digits
     betas, conformal = {}, {}
+    spent: dict[str, list[float]] = {"calibration_h": [], "calibration_conformal": [],
+                                     "frames": []}
     if todo:
         if config.regression:
             betas = calibration_betas(config, executor, store, identity, bar(
-                "calibration (h)", len(config.presets) * len(config.sigmas)))
+                "calibration (h)", len(config.presets) * len(config.sigmas)),
+                spent["calibration_h"])
         if config.conformal:
             conformal = conformal_calibrations(config, executor, store, identity, bar(
                 "calibration (conformal g)",
-                len(config.presets) * len(conformal_sigmas(config))))
+                len(config.presets) * len(conformal_sigmas(config))),
+                spent["calibration_conformal"])
 
-    def keep(index: int, rows: list[dict]) -> None:
+    def keep(index: int, result) -> None:
+        rows, cpu_s = result
         done[todo[index]] = rows
+        spent["frames"].append(cpu_s)
         if store is not None:
             store.put_frame(identity, todo[index], rows)
 
     update = bar("frames", len(tasks))
     if update is not None:
         update(stored)
-    executor.map(lambda: FrameWorker(config, betas, designs, conformal), todo, update,
-                 on_result=keep, stop=stop)
+    executor.map(cpu_timed(lambda: FrameWorker(config, betas, designs, conformal)), todo,
+                 update, on_result=keep, stop=stop)
+    if cpu is not None:
+        cpu.update({stage: round(sum(v), 1) for stage, v in spent.items()})
     order = {p: i for i, p in enumerate(config.presets)}
     finished = sorted((t for t in tasks if done.get(t) is not None),
                       key=lambda t: (order[t.preset], t.position))
