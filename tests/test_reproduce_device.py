@@ -26,9 +26,9 @@ FLOATS = ("interval_lo", "interval_hi", "certificate")
 def _config(**changes) -> ReproduceConfig:
     # one preset, classification only: the cells it has draw the noise they draw in the full
     # quick run (cell seeds are keyed by what the cell is)
-    return dataclasses.replace(ReproduceConfig.quick(), precision="fp32", presets=("carla-like",),
-                               sigmas=(0.25,), regression=False, conformal=False,
-                               decisions="fixed", **changes)
+    settings = dict(precision="fp32", presets=("carla-like",), sigmas=(0.25,), regression=False,
+                    conformal=False, decisions="fixed")
+    return dataclasses.replace(ReproduceConfig.quick(), **{**settings, **changes})
 
 
 @pytest.fixture(scope="module")
@@ -138,3 +138,37 @@ def test_at_the_papers_budget_every_pipeline_runs_and_a_budget_beyond_reach_draw
         interval = (r["interval_lo"], r["interval_hi"])
         assert interval == tuple(worker.conditions.envelope("carla-like")), r
     assert {r["pipeline"] for r in rows if r["eps"] == 1.0} == {"f", "g", "f_reg", "h"}
+
+
+def test_h_decides_its_median_over_the_designs_candidate_intervals(designs):
+    """Each candidate sits beta (and one N/rad) inside a design's ends, open where the design
+    reaches the envelope; a certified decision drives the design whose interval it came from,
+    and an infinite beta leaves no candidate (h keeps its fixed-n bounds, the envelope)."""
+    import math
+
+    from drake_cert.certification.intervals import INSIDE_N_PER_RAD, median_candidates
+    from drake_cert.config import load_conditions
+    from drake_cert.synthesis.selection import preset_designs
+    from drake_cert.threads import torch_threads
+
+    conditions = load_conditions()
+    mine = preset_designs(designs, conditions, "carla-like")
+    env = conditions.envelope("carla-like")
+    cands = median_candidates(mine, 8000.0, env)
+    assert cands and median_candidates(mine, math.inf, env) == []
+    for lo, hi in cands:
+        holder = [d for d in mine if (lo == -math.inf and d.stiffness_lo_n_per_rad == env[0]
+                                      or d.stiffness_lo_n_per_rad + 8000.0 + INSIDE_N_PER_RAD
+                                      == lo)
+                  and (hi == math.inf and d.stiffness_hi_n_per_rad == env[1]
+                       or d.stiffness_hi_n_per_rad - 8000.0 - INSIDE_N_PER_RAD == hi)]
+        assert holder, (lo, hi)
+    config = dataclasses.replace(_config(decisions="sequential"), regression=True, n=2000)
+    worker = FrameWorker(config, designs=designs, betas={("carla-like", 0.25): 8000.0})
+    assert worker.decision_rule("carla-like", ("h", 0.25, "sa", 0.25)) == "sequential"
+    with torch_threads(1):
+        rows = [r for r in worker(FrameTask("carla-like", 0)) if r["pipeline"] == "h"]
+    assert rows and all(r["certified"] for r in rows)
+    for r in rows:  # the certified design holds the run-time interval, which avoids 80 kN/rad
+        assert r["interval_lo"] > 80e3 and r["design_labels"] == "sunny"
+        assert r["interval_lo"] <= r["stiffness_n_per_rad"] <= r["interval_hi"]
