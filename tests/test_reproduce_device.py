@@ -32,11 +32,9 @@ def _config(**changes) -> ReproduceConfig:
 
 
 @pytest.fixture(scope="module")
-def designs():
-    from drake_cert.config import load_conditions, load_settings, load_vehicle
-    from drake_cert.synthesis.table import synthesize_table
-
-    return synthesize_table(load_vehicle(), load_conditions(), load_settings())
+def designs(default_design_table):
+    """The shipped design table (the session's, synthesized once per test process)."""
+    return default_design_table.designs
 
 
 def _frame(config, designs) -> list[dict]:
