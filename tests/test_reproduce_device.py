@@ -68,7 +68,8 @@ def test_cpu_with_torch_gives_the_rows_of_the_run_before_the_device_existed(desi
 
 
 def test_onnx_runtime_takes_the_same_decisions_as_torch(designs):
-    pytest.importorskip("onnxruntime")
+    pytest.importorskip("onnxruntime", reason="ONNX Runtime is the optional 'onnx' extra; "
+                        "without it the reproduction evaluates in torch, tested above")
     before = _before()
     config = _config(backend="onnxruntime")
     assert config.backend == "onnxruntime"
@@ -97,7 +98,9 @@ def test_onnx_runtime_in_bf16_is_refused_in_one_line(tmp_path, capsys):
     assert code == 2 and len(err) == 1 and "evaluates in fp32" in err[0]
 
 
-@pytest.mark.skipif(torch.cuda.is_available(), reason="this machine has CUDA")
+@pytest.mark.skipif(torch.cuda.is_available(),
+                    reason="CUDA is present here, so --device cuda is not refused: the refusal "
+                           "is what this test checks, on the machines (CI) that lack CUDA")
 def test_cuda_is_refused_in_one_line_where_it_is_absent(tmp_path, capsys):
     code = main(["reproduce", "--quick", "--device", "cuda", "--out", str(tmp_path / "r")])
     err = capsys.readouterr().err.strip().splitlines()

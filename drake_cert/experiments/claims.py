@@ -32,14 +32,7 @@ from drake_cert.experiments.headline import holds_true_label
 SPEED_KEPT = 0.8  # claim 4: the least share of g's clean speed kept under EA
 
 
-def _share(hits: int, total: int) -> dict:
-    from drake_cert.experiments.perception_eval import clopper_pearson_interval
-
-    if total == 0:
-        return dict(hits=0, total=0, pct=float("nan"), ci95_pct=[0.0, 100.0])
-    lo, hi = clopper_pearson_interval(hits, total)
-    return dict(hits=hits, total=total, pct=100.0 * hits / total,
-                ci95_pct=[100.0 * lo, 100.0 * hi])
+_share = paper_claims.share
 
 
 def _velocity(rows: list[dict]) -> float:

@@ -20,9 +20,9 @@ import math
 import numpy as np
 
 from drake_cert.experiments.perception_eval import clopper_pearson_interval
+from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS
 
-BUDGETS = (0.25, 1.0)  # the reproduction's main budget and the paper's delta = 255 read as eps
-PAPER_BUDGET_EPS = 1.0
+BUDGETS = (0.25, PAPER_BUDGET_EPS)  # the main budget and the paper's delta = 255 read as eps
 G_PIPELINES = ("g", "g_conformal")
 
 # The paper's best sigma against the safety attack (its ablation, Section V).
@@ -68,7 +68,8 @@ _PAPER_FIGURES = {
 _PRESET_ORDER = ("carla-like", "rtk-like", "robotcar-like")
 
 
-def _share(hits: int, total: int) -> dict:
+def share(hits: int, total: int) -> dict:
+    """``hits`` of ``total`` as a share in % with its two-sided 95% Clopper-Pearson interval."""
     if total == 0:
         return dict(hits=0, total=0, pct=math.nan, ci95_pct=[0.0, 100.0])
     lo, hi = clopper_pearson_interval(hits, total)
@@ -93,11 +94,11 @@ def _rows(mine: list[dict], pipeline: str, attack: str, eps=None, sigma=None) ->
 
 
 def _left(rows: list[dict]) -> dict:
-    return _share(sum(bool(r["left_lane"]) for r in rows), len(rows))
+    return share(sum(bool(r["left_lane"]) for r in rows), len(rows))
 
 
 def _right(rows: list[dict]) -> dict:
-    return _share(sum(r["predicted"] == r["true_label"] for r in rows), len(rows))
+    return share(sum(r["predicted"] == r["true_label"] for r in rows), len(rows))
 
 
 def _speed(rows: list[dict]) -> float:

@@ -56,6 +56,16 @@ from drake_cert.experiments.reproduce_config import (
 from drake_cert.experiments.run_store import RunStore
 
 
+def task_of(pipeline: str) -> str:
+    """"regress" for the regression pipelines (f_reg, h), else "classify"."""
+    return "regress" if pipeline in ("f_reg", "h") else "classify"
+
+
+def mode_of(pipeline: str) -> str:
+    """"certified" for the pipelines that certify (g, g_conformal, h), else "base"."""
+    return "certified" if pipeline in ("g", "g_conformal", "h") else "base"
+
+
 class FrameWorker:
     """Evaluates every cell on one frame. Loads designs, models and calibrations once."""
 
@@ -146,7 +156,7 @@ class FrameWorker:
             outcome = self.episodes.outcome(design, frame.stiffness_n_per_rad, friction)
             lo, hi = decision.interval
             row = dict(truth, pipeline=pipeline, sigma=sigma, attack=kind, eps=eps,
-                       task="regress" if pipeline in ("f_reg", "h") else "classify",
+                       task=task_of(pipeline),
                        predicted=self.prediction(result, names),
                        interval_lo=lo, interval_hi=hi, certificate=float(decision.radius),
                        safe_set_radius=self.safe_set_radius(result, task.preset, names),
@@ -176,8 +186,8 @@ class FrameWorker:
             return self._blocks[key]
         c = self.config
         pipeline, sigma, kind, eps = cell
-        task = "regress" if pipeline in ("f_reg", "h") else "classify"
-        mode = "certified" if pipeline in ("g", "g_conformal", "h") else "base"
+        task = task_of(pipeline)
+        mode = mode_of(pipeline)
         conformal = None
         if pipeline == "g_conformal":
             if (preset, sigma) not in self._conformal:
@@ -213,8 +223,8 @@ class FrameWorker:
         beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         return CertifiedInterval(
             preset_designs(self.designs, self.conditions, preset), self.conditions, preset,
-            eps=eps, mode="certified" if pipeline in ("g", "g_conformal", "h") else "base",
-            task="regress" if pipeline in ("f_reg", "h") else "classify", regression_beta=beta,
+            eps=eps, mode=mode_of(pipeline),
+            task=task_of(pipeline), regression_beta=beta,
             conformal=conformal, label_names=list(self.conditions.preset(preset).labels))
 
     def decision_rule(self, preset: str, cell: tuple) -> str:
@@ -262,7 +272,7 @@ class FrameWorker:
 
         c = self.config
         pipeline, sigma, _, eps = cell
-        task = "regress" if pipeline in ("f_reg", "h") else "classify"
+        task = task_of(pipeline)
         labels = list(self.conditions.preset(preset).labels)
         sequential = decision == "sequential"
         if sequential and pipeline == "h":
@@ -273,7 +283,7 @@ class FrameWorker:
             ranges = None
         return PerceptionSmoothing(
             self.evaluated(preset, task, sigma), device=c.device,
-            mode="certified" if pipeline in ("g", "g_conformal", "h") else "base", task=task,
+            mode=mode_of(pipeline), task=task,
             sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n, alpha=c.alpha,
             batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels, eps=eps,
             decision=decision, conformal=conformal if sequential else None, ranges=ranges)

@@ -27,6 +27,8 @@ from collections import defaultdict
 
 import numpy as np
 
+from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS
+
 COLUMNS = ("table", "preset", "task", "pipeline", "sigma", "attack", "eps", "frames", "accuracy",
            "mse", "instability_pct", "velocity_mps", "certificate", "certified_pct",
            "interval_coverage", "seed")
@@ -88,7 +90,8 @@ PAPER = {
 
 SAME_METRICS = ("accuracy", "velocity_mps")  # the paper's numbers that are ours' metric
 PAPER_BUDGET = 255  # the paper's "delta = 255" (norm's pixel scale and image size not stated)
-PAPER_BUDGET_AS_EPS = PAPER_BUDGET / 255.0  # delta read as L2 over [0, 255] pixel values
+# delta read as L2 over [0, 255] pixel values: the grid's paper budget (reproduce_config)
+PAPER_BUDGET_AS_EPS = PAPER_BUDGET_EPS
 
 # The paper's Table I (ground-truth cornering stiffness, kN/rad) and safe-set table, by label.
 PAPER_STIFFNESS_KN = {"sunny": (80, 120), "light_rain": (60, 80), "heavy_rain": (40, 60),
