@@ -65,7 +65,7 @@ def run(sampler: NoisySampler, frames: torch.Tensor, n: int, batch_size: int, se
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run (docs/results.md figures)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="carla-like")
     parser.add_argument("--sigma", type=float, default=0.25)

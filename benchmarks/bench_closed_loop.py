@@ -1,5 +1,5 @@
-"""Closed-loop simulation speed ((i) of the README's table): prints measured figures, with
-baselines.
+"""Closed-loop simulation speed ((i) of the benchmark table in docs/results.md): prints measured
+figures, with baselines.
 
 Default configuration: the synthesized heavy-rain design at its safe speed, true stiffness
 at the interval's lower end, friction of the label, a 20 s episode on a curve of the design

@@ -38,7 +38,7 @@ from drake_cert.perception.models import load_model
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run (docs/results.md figures)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--preset", default="robotcar-like")
     parser.add_argument("--sigma", type=float, default=1.0)

@@ -57,7 +57,7 @@ def timed_drive(scenario, setup, seconds):
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run (docs/results.md figures)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--n", type=int, default=1000)

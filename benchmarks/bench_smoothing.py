@@ -52,7 +52,7 @@ def plain_certify(model, x, n0, n, alpha, batch_size, sigma, num_classes):
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run (docs/results.md figures)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, default=10_000)
     parser.add_argument("--n0", type=int, default=100)

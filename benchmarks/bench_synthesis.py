@@ -1,5 +1,5 @@
-"""Synthesis benchmarks ((ii) and (iii) of the README's table): prints measured figures, with
-baselines from the same run.
+"""Synthesis benchmarks ((ii) and (iii) of the benchmark table in docs/results.md): prints
+measured figures, with baselines from the same run.
 
 (ii)  wall time to synthesize the default design table (target < 30 s on 2 cores), with the
       joint gains (the default) and the separate ones (the baseline), their switching

@@ -34,7 +34,7 @@ from drake_cert.io import atomic_write_text, provenance
 def main() -> None:
     from drake_cert.certification.sampler import retain_freed_memory
 
-    retain_freed_memory()  # as the long-running commands run (README figures)
+    retain_freed_memory()  # as the long-running commands run (docs/results.md figures)
     d = TableSettings()
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=list(PRESETS))

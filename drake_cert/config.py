@@ -7,8 +7,8 @@ Physical fields carry a plausible range (:class:`Plausible`, in the field's meta
 value outside it is refused with the unit mistake that would explain it ("kN/rad? write
 100000"). Keys, types and plausible ranges are checked on the parsed YAML before pydrake is
 imported, so a mistake in a file costs no heavy import.
-Units are SI; conventions (README): e1 > 0 left of the lane centre, curvature > 0 left
-turn, steering > 0 left, ``psidot_des = V * kappa``.
+Units are SI; conventions (docs/usage.md, "Conventions"): e1 > 0 left of the lane centre,
+curvature > 0 left turn, steering > 0 left, ``psidot_des = V * kappa``.
 """
 
 

@@ -55,3 +55,12 @@ def test_the_checker_sees_a_broken_anchor(tmp_path):
                     "[bad](#no-such-heading) [file](missing.md)\n")
     assert "a-title-with-punctuation" in anchors(page)
     assert links(page) == ["#a-title-with-punctuation", "#no-such-heading", "missing.md"]
+
+
+def test_the_readme_is_a_front_page():
+    """At most 15,000 bytes: what and why, the two commands, the vehicle workflow, the Python
+    example, the headline and links; the rest lives in docs/."""
+    size = len((ROOT / "README.md").read_bytes())
+    assert size <= 15_000, f"README.md is {size:,} bytes: move detail into docs/"
+    for page in ("docs/usage.md", "docs/commands.md", "docs/results.md", "docs/design.md"):
+        assert f"]({page})" in (ROOT / "README.md").read_text(), page

@@ -83,6 +83,17 @@ def test_a_slow_g_a_slow_h_and_a_clean_f_reg_departure_fail_their_claims():
     assert v[("f_unstable_under_sa", 0.25, None)]["holds"] is True
 
 
+def test_the_failing_summary_names_each_failing_claim_once_with_where_it_fails():
+    rows = [r for i in range(2) for r in frame(i, g_ea_v=6.5, f_reg_clean_left=i == 1)]
+    lines = pc.failing(pc.paper_claims(rows, (0.25,)))
+    fails = {c["claim"] for c in pc.paper_claims(rows, (0.25,)) if c["holds"] is False}
+    assert len(lines) == len(fails) >= 2
+    fast = next(x for x in lines if x.startswith(pc.STATEMENTS["g_at_least_as_fast_as_f_under_ea"]))
+    assert fast.endswith("fails on carla-like eps 0.25 (g)")
+    assert any(x.endswith("fails on carla-like clean") for x in lines)  # f_reg's clean claim
+    assert pc.failing(pc.paper_claims([r for i in range(3) for r in frame(i)], (0.25,))) == []
+
+
 def test_a_budget_the_run_did_not_evaluate_is_not_tested_never_holds():
     v = verdicts([r for i in range(2) for r in frame(i)], budgets=(0.25, 1.0))
     at_one = [c for (claim, budget, _), c in v.items() if budget == 1.0]

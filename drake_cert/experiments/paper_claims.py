@@ -376,3 +376,16 @@ def markdown(claims: list[dict]) -> str:
         lines.append(f"| {text} | {'clean' if budget is None else f'eps = {budget:g}'} | "
                      f"{pipe or '-'} | " + " | ".join(cells) + f" | {CLAIMS[claim][1]} |")
     return "\n".join(lines) + "\n"
+
+
+def failing(claims: list[dict]) -> list[str]:
+    """One line per claim that fails somewhere: its statement and where it fails (preset,
+    budget, g's interval), in the order of ``claims``; the README's summary quotes these."""
+    where: dict[str, list[str]] = {}
+    for c in claims:
+        if c["holds"] is False:
+            budget = "clean" if c["budget"] is None else f"eps {c['budget']:g}"
+            pipe = f" ({c['pipeline']})" if c["pipeline"] else ""
+            where.setdefault(c["claim"], []).append(f"{c['preset']} {budget}{pipe}")
+    return [f"{STATEMENTS[claim]}: fails on {', '.join(places)}"
+            for claim, places in where.items()]

@@ -380,7 +380,7 @@ def render(all_rows: dict[str, dict[str, list[dict]]], ts: TableSettings,
         "PREDICTION cannot be pushed out of the range, so it holds the true stiffness only "
         "when g is right on the clean frame (its column 'coverage if g right'). Robust "
         "conformal interval: holds the true stiffness with probability >= 1 - alpha_total "
-        "under any L2 perturbation <= eps, with no assumption on g (README, soundness). "
+        "under any L2 perturbation <= eps, with no assumption on g (docs/design.md 8, soundness). "
         "Regression: [lower - beta, upper + beta] from median smoothing and a per-label "
         "conformal beta (largest over labels at run time); guarantee 1 - alpha - alpha_c - "
         "alpha_m. A measured coverage below its guarantee is a failure only when the "

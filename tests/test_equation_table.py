@@ -1,7 +1,7 @@
-"""README.md's "equation / claim | implemented in | checked by" table stays true: every function
-it names imports, and every test it names exists.
+"""The equations table of the design notes (section 10, columns equation / claim, implemented
+in, checked by) stays true: every function it names imports, and every test it names exists.
 
-Reading rules (the README's own shorthand): in "implemented in", a bare name after a dotted
+Reading rules (the table's own shorthand): in "implemented in", a bare name after a dotted
 path lives in the module of the previous dotted name; in "checked by", ``test_x.py`` means
 ``tests/test_x.py`` and a bare ``test_name`` lives in the previous file.
 """
@@ -19,7 +19,7 @@ HEADER = "| equation / claim | implemented in | checked by |"
 
 
 def table_rows() -> list[tuple[str, str, str]]:
-    lines = (ROOT / "README.md").read_text().splitlines()
+    lines = (ROOT / "docs" / "design.md").read_text().splitlines()
     start = lines.index(HEADER) + 2  # skip the header and the |---| line
     rows = []
     for line in lines[start:]:
@@ -129,4 +129,4 @@ def test_every_function_and_test_of_the_row_exists(claim, functions, tests):
             missing.append(f"test file {path.relative_to(ROOT)} does not exist")
         elif func is not None and func not in functions_in_file(path):
             missing.append(f"test {path.relative_to(ROOT)}::{func} does not exist")
-    assert not missing, f"README row {claim!r}: " + "; ".join(missing)
+    assert not missing, f"design.md table row {claim!r}: " + "; ".join(missing)
