@@ -8,8 +8,16 @@ model (``target="smoothed"``: SmoothAdv, the expectation over ``noise_draws`` dr
 ``sigma``); and two faults for testing the pipeline's handling of bad frames: ``nan`` (every
 pixel NaN) and ``misshaped`` (the top half of the image only, [3, H/2, W]).
 
-Stateless: the output is cached on the input, so each attack runs once per new frame. The
-attack of tick k draws its random start and noise from the stream ``attack`` (k) of the seed
+Parameters: the scenario's blocks. ``attack`` (:class:`AttackSettingsYaml`): ``kind``,
+``eps``, ``target``, ``steps``, ``noise_draws`` (the Diagram builder sets ``target`` by
+pipeline: ``smoothed`` for the certified one, ``base`` for the base one); ``perception``
+(:class:`PerceptionSettings`): ``task`` (what the model outputs) and ``sigma`` (read with
+``target="smoothed"`` only); ``camera`` (:class:`CameraSettings`): ``frame_size``. Keywords:
+the attacked ``model`` and the scenario's ``seed``.
+
+Ports: input ``frame`` and output ``frame`` (abstract :class:`CameraFrame`). Stateless: the
+output is cached on the input, so each attack runs once per new frame. The attack of tick k
+draws its random start and noise from the stream ``attack`` (k) of the seed
 (:mod:`drake_cert.certification.seeds`).
 A frame that is already bad (NaN, wrong rank) is passed through unchanged by sa/ea.
 """
@@ -25,6 +33,7 @@ from drake_cert.certification.attacks import AttackSettings, attack
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.errors import ConfigError
 from drake_cert.systems.camera import CameraFrame
+from drake_cert.systems.scenario import AttackSettingsYaml, CameraSettings, PerceptionSettings
 
 KINDS = ("none", "sa", "ea", "nan", "misshaped")
 TARGETS = ("base", "smoothed")
@@ -34,23 +43,25 @@ class Attacker(LeafSystem):
     """Input ``frame`` (abstract :class:`CameraFrame`), output ``frame`` (perturbed copy).
 
     Args:
-        kind: one of :data:`KINDS`.
-        eps: L2 budget of sa/ea (pixel units).
-        target: "base" (PGD on ``model``) or "smoothed" (SmoothAdv on ``model`` at ``sigma``).
+        attack: kind, budget eps (L2, pixel units), target ("base": PGD on ``model``;
+            "smoothed": SmoothAdv on ``model`` at ``perception.sigma``), PGD steps and noise
+            draws (:class:`AttackSettings`; the step size is PGD's default).
+        perception: ``task`` ("classify" or "regress": what ``model`` outputs) and ``sigma``.
+        camera: ``frame_size``, the side of the camera's frames (model value of the ports).
         model: the perception model attacked (classifier logits or stiffness regressor);
             needed for sa/ea.
-        sigma: noise level of the smoothed model (used when ``target="smoothed"``).
-        task: "classify" or "regress" (what ``model`` outputs).
         seed: scenario seed; tick k uses its stream ``attack`` (k).
-        steps, noise_draws, step_size: PGD settings (:class:`AttackSettings`).
-        frame_size: side of the camera's frames (model value of the ports).
     """
 
-    def __init__(self, kind: str = "none", *, eps: float = 0.0, target: str = "smoothed",
-                 model: torch.nn.Module | None = None, sigma: float = 0.0,
-                 task: str = "classify", seed: int = 0, steps: int = 20, noise_draws: int = 8,
-                 step_size: float | None = None, frame_size: int = 64):
+    def __init__(self, attack: AttackSettingsYaml | None = None,
+                 perception: PerceptionSettings | None = None,
+                 camera: CameraSettings | None = None, *,
+                 model: torch.nn.Module | None = None, seed: int = 0):
         super().__init__()
+        attack = attack if attack is not None else AttackSettingsYaml()
+        perception = perception if perception is not None else PerceptionSettings()
+        camera = camera if camera is not None else CameraSettings()
+        kind, eps, target, sigma = attack.kind, attack.eps, attack.target, perception.sigma
         if kind not in KINDS:
             raise ConfigError(f"attack kind {kind!r}; expected one of {', '.join(KINDS)}")
         if target not in TARGETS:
@@ -66,12 +77,12 @@ class Attacker(LeafSystem):
         self.target = target
         self.model = model
         self.sigma = float(sigma) if target == "smoothed" else 0.0
-        self.task = task
+        self.task = perception.task
         self.seed = int(seed)
-        self._settings = AttackSettings(eps=self.eps, steps=int(steps), step_size=step_size,
-                                        noise_draws=int(noise_draws))
+        self._settings = AttackSettings(eps=self.eps, steps=int(attack.steps),
+                                        noise_draws=int(attack.noise_draws))
         self._settings.validate()
-        placeholder = CameraFrame.placeholder(frame_size)
+        placeholder = CameraFrame.placeholder(camera.frame_size)
         self._in = self.DeclareAbstractInputPort("frame", AbstractValue.Make(placeholder))
         self.DeclareAbstractOutputPort("frame", lambda: AbstractValue.Make(placeholder),
                                        self._calc_frame,

@@ -1,16 +1,18 @@
 """From perception to a stiffness interval, a controller design and a speed command (DESIGN 3, 6).
 
-Once per camera tick (default offset T/2, after perception at T/4) the block turns the
-latest :class:`PerceptionResult` into a :class:`Decision`:
+Once per camera tick (``camera.rate_hz``, at :data:`OFFSET_FRACTION` (1/2) of the period, after
+perception at 1/4) the block turns the latest :class:`PerceptionResult` into a :class:`Decision`.
+It reads the scenario's ``perception`` block (``preset``, ``eps``, ``pipeline`` as the mode,
+``task``), ``controller.dwell_time_s`` and ``camera.rate_hz``; the Diagram builder gives the
+designs, the conditions table, the calibrations, the vehicle's stiffness scale and the labels.
 
 - certified classification: the run-time interval at budget eps at the observed frame
   (:func:`runtime_classification_interval`: the narrowest contiguous label range T holding
-  the top label with ``R_T > eps``; or, from a sequential decision,
-  :func:`runtime_decision_interval`: the range it certified); its design is the table's
-  design for T.
+  the top label with ``R_T > eps``; from a sequential decision,
+  :func:`runtime_decision_interval`: the range it certified); its design is the table's for T.
 - certified regression: ``[lower - beta, upper + beta]`` clipped to the envelope
-  (:func:`runtime_interval`); its design is the narrowest design whose interval contains it
-  and whose friction bound is at most the least friction a stiffness in it can mean
+  (:func:`runtime_interval`); its design is the narrowest design holding it whose friction
+  bound is at most the least friction a stiffness in it can mean
   (:func:`drake_cert.synthesis.table.friction_lower_bound`); ties: the slower design.
 - base mode (non-robust baseline): the raw label's own interval and design (regression: the
   narrowest design holding the raw point prediction, under the same friction rule).
@@ -19,12 +21,12 @@ latest :class:`PerceptionResult` into a :class:`Decision`:
 
 The speed command is the design's safe speed, or 0 (stop) when the design has none.
 Dwell time: a request for a design that holds every stiffness the current one holds (a wider
-label range: slower, safer) applies at once. Any other change waits until ``dwell_time_s``
-has passed since the last switch: meanwhile the join of the two designs is in force (the design
-of the hull of both label ranges, which holds both: itself a widening, so at once), with the
-speed command ``min(join speed, requested speed)``; the request applies at the first tick after
-the dwell if still requested, from the look point of the tick that first requested it. A request
-that changes while held back restarts the hold's look point; one no longer requested is dropped.
+label range) applies at once. Any other change waits until ``dwell_time_s`` has passed since the
+last switch; meanwhile the join of the two designs (the design of the hull of both ranges: a
+widening, so at once) is in force with the speed ``min(join speed, requested speed)``; the
+request applies at the first tick after the dwell if still requested, from the look point of
+the tick that first requested it. A request that changes while held back restarts the hold's
+look point; one no longer requested is dropped.
 """
 
 import dataclasses
@@ -47,8 +49,10 @@ from drake_cert.synthesis.design_io import DesignTable
 from drake_cert.synthesis.selection import join_design_indices
 from drake_cert.synthesis.table import friction_lower_bound
 from drake_cert.systems.perception_smoothing import PerceptionResult
+from drake_cert.systems.scenario import CameraSettings, ControllerScenario, PerceptionSettings
 
 STATUS_CODES = {"certified": 0, "envelope": 1, "stop": 2, "base": 3}
+OFFSET_FRACTION = 0.5  # the update comes this share of a camera period after the frame
 
 
 @dataclasses.dataclass(frozen=True)
@@ -124,9 +128,13 @@ class CertifiedInterval(LeafSystem):
         designs: the designs to choose from (e.g. :func:`designs_for_preset`); must hold the
             envelope design (labels = the preset's whole family) and, for classification,
             one design per contiguous label range.
-        conditions, preset: the conditions table and the perception preset.
-        eps: L2 budget the run-time interval is certified against.
-        mode: "certified" or "base"; task: "classify" or "regress".
+        conditions: the conditions table (as scaled for the vehicle: the designs' intervals).
+        perception: the scenario's perception block; reads ``preset``, ``eps`` (the L2 budget
+            the run-time interval is certified against), ``pipeline`` ("certified" or "base")
+            and ``task`` ("classify" or "regress").
+        controller: the scenario's controller block; reads ``dwell_time_s`` (s), the least
+            time between design switches.
+        camera: the scenario's camera block; reads ``rate_hz``, the update's rate.
         regression_beta: conformal beta (N/rad) of the regression interval.
         conformal: a robust conformal calibration
             (:func:`drake_cert.certification.conformal.calibrate_robust_conformal`): when given,
@@ -134,22 +142,26 @@ class CertifiedInterval(LeafSystem):
             stiffness with probability >= 1 - alpha_total without assuming g is right on the
             clean frame; DESIGN 3) instead of the safe-set interval; the design is that of its
             contiguous label range.
-        dwell_time_s: least time between design switches (s).
         stiffness_scale: the vehicle's ``tire_stiffness_scale`` (dimensionless): a regressor
             estimates the road's stiffness for the conditions table's reference tire, so its
             values (and beta) are multiplied by it before a design is chosen; ``conditions``
             must then be the table as scaled for this vehicle (the designs' intervals).
             Classification reads label ranges, which need no scaling.
-        rate_hz, offset_s: the update's rate and offset (default half a period).
         label_names: the classifier's label names (default: the preset's).
     """
 
     def __init__(self, designs: Sequence[ControllerDesign], conditions: ConditionsTable,
-                 preset: str, *, eps: float, mode: str = "certified", task: str = "classify",
-                 regression_beta: float = 0.0, conformal=None, dwell_time_s: float = 0.3,
-                 stiffness_scale: float = 1.0, rate_hz: float = 10.0,
-                 offset_s: float | None = None, label_names: Sequence[str] | None = None):
+                 perception: PerceptionSettings | None = None,
+                 controller: ControllerScenario | None = None,
+                 camera: CameraSettings | None = None, *, regression_beta: float = 0.0,
+                 conformal=None, stiffness_scale: float = 1.0,
+                 label_names: Sequence[str] | None = None):
         super().__init__()
+        p = perception if perception is not None else PerceptionSettings()
+        controller = controller if controller is not None else ControllerScenario()
+        camera = camera if camera is not None else CameraSettings()
+        preset, eps, mode, task = p.preset, p.eps, p.pipeline, p.task
+        dwell_time_s = controller.dwell_time_s
         if mode not in ("certified", "base") or task not in ("classify", "regress"):
             raise ConfigError(f"mode {mode!r} / task {task!r}: expected certified|base and "
                               "classify|regress")
@@ -188,8 +200,8 @@ class CertifiedInterval(LeafSystem):
         self._join = (join_design_indices(self.designs, conditions, preset)
                       if complete and all(d.labels for d in self.designs) else None)
 
-        period = 1.0 / float(rate_hz)
-        self.offset_s = 0.5 * period if offset_s is None else float(offset_s)
+        period = 1.0 / float(camera.rate_hz)
+        self.offset_s = OFFSET_FRACTION * period
         initial = self.initial_state()
         self.DeclareAbstractInputPort("perception", AbstractValue.Make(
             PerceptionResult.no_frame(mode, task)))

@@ -62,6 +62,7 @@ from drake_cert.systems.longitudinal import (
     BRAKING_MARGIN_M,
     ENVELOPE_DECEL_FRACTION,
     LongitudinalMotion,
+    ProfileDesigns,
     frontier_latency_s,
     look_ahead_needed_m,
     supported_speed_mps,
@@ -580,23 +581,19 @@ def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
                                         look_ahead_m=cam.look_ahead_m,
                                         frame_size=cam.frame_size, seed=scenario.seed,
                                         frames_dir=cam.frames_dir or None))
+    # The attacker attacks the pipeline's own model: SmoothAdv on g at perception.sigma
+    # (certified), PGD on f without noise (base), whatever the scenario's attack.target.
     attacker = add("attacker", Attacker(
-        att.kind, eps=att.eps, target="smoothed" if parts.certified else "base",
-        model=parts.model, sigma=parts.sigma, task=p.task, seed=scenario.seed, steps=att.steps,
-        noise_draws=att.noise_draws, frame_size=cam.frame_size))
+        dataclasses.replace(att, target="smoothed" if parts.certified else "base"), p, cam,
+        model=parts.model, seed=scenario.seed))
     perception = add("perception_smoothing", PerceptionSmoothing(
-        parts.evaluated, mode=p.pipeline, task=p.task, sigma=parts.sigma,
-        n0=p.n0, n=p.n, alpha=p.alpha, batch_size=p.batch_size, rate_hz=cam.rate_hz,
-        offset_s=0.25 * parts.period_s, seed=scenario.seed, label_names=parts.labels,
-        eps=p.eps, frame_size=cam.frame_size, decision=p.resolved_decision,
+        parts.evaluated, p, cam, seed=scenario.seed, label_names=parts.labels,
         ranges=candidate_ranges(tires, p.preset, parts.labels),
         alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal))
     interval = add("certified_interval", CertifiedInterval(
-        table, tires, p.preset, eps=p.eps, mode=p.pipeline, task=p.task,
-        regression_beta=parts.regression_beta, conformal=parts.conformal,
-        stiffness_scale=parts.vehicle.tire_stiffness_scale,
-        dwell_time_s=scenario.controller.dwell_time_s,
-        rate_hz=cam.rate_hz, offset_s=0.5 * parts.period_s, label_names=parts.labels))
+        table, tires, p, scenario.controller, cam, regression_beta=parts.regression_beta,
+        conformal=parts.conformal, stiffness_scale=parts.vehicle.tire_stiffness_scale,
+        label_names=parts.labels))
     return dict(camera=camera, attacker=attacker, perception=perception, interval=interval)
 
 
@@ -606,20 +603,17 @@ def _add_motion(b: DiagramBuilder, parts: _DriveParts) -> dict:
     p, cam, ctl = scenario.perception, scenario.camera, parts.settings.controller
     add = b.AddNamedSystem
     motion = add("longitudinal_motion", LongitudinalMotion(
-        max_decel_mps2=scenario.motion.max_decel_mps2,
-        max_accel_mps2=scenario.motion.max_accel_mps2,
-        initial_speed_mps=parts.initial_speed_mps, initial_design_index=parts.envelope,
-        stop_speed_mps=scenario.motion.stop_speed_mps, rate_hz=cam.rate_hz,
-        offset_s=0.75 * parts.period_s, join=join_design_indices(table, tires, p.preset),
-        design_speeds_mps=_speeds(table),
-        frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
-        # the certified pipeline combines its certified decisions over the shortest stretch of
-        # one condition; the base pipeline's raw predictions each stand alone (the baseline)
-        spans=design_label_spans(table, tires, p.preset) if parts.certified else None,
-        window_m=scenario.min_condition_length_m if parts.certified else 0.0,
-        tolerance=scenario.tolerated_wrong_frames,
-        envelope_index=parts.envelope,
-        initial_arc_length_m=-cam.look_ahead_m))
+        # the scenario's initial speed 0 means the envelope design's speed
+        dataclasses.replace(scenario.motion, initial_speed_mps=parts.initial_speed_mps), cam,
+        designs=ProfileDesigns(
+            join=join_design_indices(table, tires, p.preset), design_speeds_mps=_speeds(table),
+            frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
+            # the certified pipeline combines its certified decisions over the shortest
+            # stretch of one condition; the base pipeline's raw predictions each stand alone
+            spans=design_label_spans(table, tires, p.preset) if parts.certified else None,
+            window_m=scenario.min_condition_length_m if parts.certified else 0.0,
+            tolerance=scenario.tolerated_wrong_frames, envelope_index=parts.envelope),
+        initial_design_index=parts.envelope, initial_arc_length_m=-cam.look_ahead_m))
     road = add("route", RouteSource(parts.route, preview_ahead_s=ctl.preview_ahead_s,
                                     preview_window_s=ctl.preview_window_s))
     return dict(motion=motion, route=road)

@@ -3,19 +3,20 @@
 Input ``decision`` (abstract; e.g. ``drake_cert.systems.certified_interval.Decision``): any
 object with ``position_m`` (look point it applies from, m of arc length), ``speed_command_mps``
 (0 = stop), ``design_index``, ``time_s`` and optionally ``look_m`` (default ``position_m``).
-Continuous state ``[x, v]`` (m, m/s; a C++ ``SymbolicVectorSystem`` of deviations from the
-initial values, dv/dt from ``speed_planner``). Abstract state: the profile, entries
-``(position_m, speed_command_mps, design_index)`` by position, the first at -inf, and the time
-of the last decision. Outputs (size 1): ``arc_length_m`` x (m), ``speed_mps`` max(v, 0),
+Continuous state ``[x, v]`` (m, m/s; a C++ ``SymbolicVectorSystem``); abstract state the
+:class:`SpeedProfile`. Outputs (size 1): ``arc_length_m`` x (m), ``speed_mps`` max(v, 0),
 ``design_index`` (latest entry at or before x), ``speed_reference_mps`` v_ref(x) (m/s).
+Parameters: the scenario's ``motion`` block (``max_decel_mps2``, ``max_accel_mps2``,
+``initial_speed_mps``, ``stop_speed_mps``), ``camera.rate_hz``, the block's own
+:class:`TrackingSettings` and the builder's :class:`ProfileDesigns`.
 
-Profile update (periodic, camera rate, offset 3T/4 by default): passed entries are dropped but
-the one in force, an entry equal to its predecessor is not added, a command below
+Profile update (camera rate, at :data:`OFFSET_FRACTION` 3/4 of the period): passed entries are
+dropped but the one in force, an entry equal to its predecessor is not added, a command below
 ``stop_speed_mps`` is 0. Each decision on its own (a join table only): the road from the
 previous look point q to this one gets the join of the two designs, and a decision at p
-supersedes the entries at positions >= p. Decisions combined (``spans`` and ``window_m`` > 0,
-as the driving Diagram builds it): the stretches within the window behind a new look get the
-span of :func:`drake_cert.systems.decision_combination.tolerant_span`, sound while at most
+supersedes the entries at positions >= p. Decisions combined (``spans`` and ``window_m`` > 0):
+the stretches within the window behind a new look get the span of
+:func:`drake_cert.systems.decision_combination.tolerant_span`, sound while at most
 ``tolerance`` of the frames used are wrong; past the newest look: the envelope (tolerance 0:
 the newest decision's design).
 
@@ -31,7 +32,7 @@ driving by ``drake_cert.systems.driving.check_look_ahead``. Why these hold: DESI
 
 import dataclasses
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 
 import pydrake.symbolic as sym
 from pydrake.common.value import AbstractValue
@@ -40,11 +41,38 @@ from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 
 from drake_cert.errors import ConfigError
 from drake_cert.systems.decision_combination import is_within, stretch_spans
+from drake_cert.systems.scenario import CameraSettings, MotionSettings
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
 BRAKING_MARGIN_M = 2.0  # a command ahead is reached this far before its point (m)
 ENVELOPE_DECEL_FRACTION = 0.9  # share of the braking authority the braking envelope plans with
 MAX_LOOKS = 400  # recent decisions a combining profile keeps (the car at rest adds one a tick)
+OFFSET_FRACTION = 0.75  # the profile update comes this share of a camera period after the frame
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackingSettings:
+    """The tracking law's and the braking envelope's own constants (not the scenario's)."""
+
+    speed_gain_per_s: float = 2.0  # k: gain of the tracking law (1/s)
+    braking_margin_m: float = BRAKING_MARGIN_M  # m: a command is reached this far before its point
+    envelope_decel_fraction: float = ENVELOPE_DECEL_FRACTION  # a = this share of max_decel_mps2
+    creep_speed_mps: float = 0.1  # v_creep: the target is this far below a stop command (m/s)
+
+
+@dataclasses.dataclass(frozen=True)
+class ProfileDesigns:
+    """What the profile takes decisions in with, derived by the Diagram builder from the design
+    table and the scenario (module docstring). Without one, each decision's command applies
+    from its own point on and nothing is braked for at the frontier."""
+
+    join: Mapping[tuple[int, int], int] | None = None  # design holding both of two designs
+    design_speeds_mps: Sequence[float] | None = None  # safe speed of each design (m/s; 0: none)
+    frontier_speed_mps: float | None = None  # braked for at the decided road's end; None: not
+    spans: Sequence[tuple[int, int]] | None = None  # label span of each design: combine
+    window_m: float = 0.0  # decisions are combined over this stretch (m; > 0 with spans)
+    tolerance: int = 1  # wrong frames among those combined that the rule tolerates
+    envelope_index: int | None = None  # the envelope design (needed to combine)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -187,7 +215,7 @@ def speed_reference(entries, arc_length_m: float, *, decel_mps2: float, margin_m
     return v_ref, slope
 
 
-def frontier_latency_s(rate_hz: float, offset_fraction: float = 0.75,
+def frontier_latency_s(rate_hz: float, offset_fraction: float = OFFSET_FRACTION,
                        lag_ticks: int = 0) -> float:
     """Longest time (s) the end of the decided road stays put: one camera period plus the
     offset at which the profile takes a decision in (the car drives this far on the last
@@ -198,7 +226,7 @@ def frontier_latency_s(rate_hz: float, offset_fraction: float = 0.75,
 
 def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: float,
                         margin_m: float, floor_speed_mps: float,
-                        offset_fraction: float = 0.75, lag_ticks: int = 0) -> float:
+                        offset_fraction: float = OFFSET_FRACTION, lag_ticks: int = 0) -> float:
     """Largest constant speed (m/s) a camera look-ahead supports: the car can still brake at
     ``decel_mps2`` to ``floor_speed_mps`` (the slowest command) ``margin_m`` before the
     frontier when the frontier has not moved for :func:`frontier_latency_s`, i.e. the root of
@@ -212,7 +240,7 @@ def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: floa
 
 def look_ahead_needed_m(speed_mps: float, rate_hz: float, *, decel_mps2: float,
                         margin_m: float, floor_speed_mps: float,
-                        offset_fraction: float = 0.75, lag_ticks: int = 0) -> float:
+                        offset_fraction: float = OFFSET_FRACTION, lag_ticks: int = 0) -> float:
     """The look-ahead (m) that supports ``speed_mps`` (inverse of :func:`supported_speed_mps`)."""
     return (max(speed_mps**2 - floor_speed_mps**2, 0.0) / (2.0 * decel_mps2) + margin_m
             + frontier_latency_s(rate_hz, offset_fraction, lag_ticks) * speed_mps)
@@ -350,48 +378,61 @@ class LongitudinalMotion(Diagram):
     A :class:`SpeedPlanner` (Python: profile and tracking law) drives the kinematics
     ``[x, v]``, a C++ ``SymbolicVectorSystem`` (the arc length and speed, read by the plant,
     the route and the controller at every integrator stage, cost no Python call).
+
+    Args:
+        motion: the scenario's motion block; reads ``max_decel_mps2``, ``max_accel_mps2``
+            (m/s^2), ``initial_speed_mps`` (the speed at t = 0 itself: the builder puts the
+            envelope design's speed in for the scenario's 0) and ``stop_speed_mps`` (m/s).
+        camera: the scenario's camera block; reads ``rate_hz``, the profile update's rate.
+        tracking: the tracking law's gain, braking margin, envelope share and creep speed.
+        designs: the design table's speeds and joins and the combination of decisions
+            (:class:`ProfileDesigns`); None: each decision's command on its own.
+        initial_design_index: the design in force before any decision.
+        initial_arc_length_m: x at t = 0 (m; the builder starts the car a look-ahead before
+            the route).
     """
 
-    def __init__(self, *, max_decel_mps2: float = 4.0, max_accel_mps2: float = 2.0,
-                 speed_gain_per_s: float = 2.0, initial_speed_mps: float,
-                 initial_design_index: int = 0, stop_speed_mps: float = STOP_SPEED_MPS,
-                 rate_hz: float = 10.0, offset_s: float | None = None,
-                 braking_margin_m: float = BRAKING_MARGIN_M,
-                 envelope_decel_fraction: float = ENVELOPE_DECEL_FRACTION,
-                 creep_speed_mps: float = 0.1, initial_arc_length_m: float = 0.0,
-                 join: dict[tuple[int, int], int] | None = None,
-                 design_speeds_mps: list[float] | None = None,
-                 frontier_speed_mps: float | None = None,
-                 spans: Sequence[tuple[int, int]] | None = None, window_m: float = 0.0,
-                 tolerance: int = 1, envelope_index: int | None = None):
+    def __init__(self, motion: MotionSettings | None = None,
+                 camera: CameraSettings | None = None,
+                 tracking: TrackingSettings | None = None, *,
+                 designs: ProfileDesigns | None = None, initial_design_index: int = 0,
+                 initial_arc_length_m: float = 0.0):
         super().__init__()
-        _check_motion_limits(max_decel_mps2=max_decel_mps2, max_accel_mps2=max_accel_mps2,
-                             speed_gain_per_s=speed_gain_per_s, rate_hz=rate_hz,
-                             stop_speed_mps=stop_speed_mps, creep_speed_mps=creep_speed_mps,
+        motion = motion if motion is not None else MotionSettings()
+        rate_hz = (camera if camera is not None else CameraSettings()).rate_hz
+        t = tracking if tracking is not None else TrackingSettings()
+        d = designs if designs is not None else ProfileDesigns()
+        initial_speed_mps = motion.initial_speed_mps
+        _check_motion_limits(max_decel_mps2=motion.max_decel_mps2,
+                             max_accel_mps2=motion.max_accel_mps2,
+                             speed_gain_per_s=t.speed_gain_per_s, rate_hz=rate_hz,
+                             stop_speed_mps=motion.stop_speed_mps,
+                             creep_speed_mps=t.creep_speed_mps,
                              initial_speed_mps=initial_speed_mps,
-                             envelope_decel_fraction=envelope_decel_fraction,
-                             braking_margin_m=braking_margin_m)
-        self.max_decel_mps2 = float(max_decel_mps2)
-        self.max_accel_mps2 = float(max_accel_mps2)
-        self.speed_gain_per_s = float(speed_gain_per_s)
-        self.stop_speed_mps = float(stop_speed_mps)
-        self.envelope_decel_mps2 = envelope_decel_fraction * self.max_decel_mps2
-        self.braking_margin_m = float(braking_margin_m)
-        self.creep_speed_mps = float(creep_speed_mps)
-        _check_decision_options(join=join, design_speeds_mps=design_speeds_mps,
-                                frontier_speed_mps=frontier_speed_mps, window_m=window_m,
-                                spans=spans, envelope_index=envelope_index, tolerance=tolerance)
-        self._join, self._speeds = join, design_speeds_mps
-        self._spans = None if spans is None else [tuple(map(int, s)) for s in spans]
-        self._design_of_span = (None if spans is None
+                             envelope_decel_fraction=t.envelope_decel_fraction,
+                             braking_margin_m=t.braking_margin_m)
+        self.max_decel_mps2 = float(motion.max_decel_mps2)
+        self.max_accel_mps2 = float(motion.max_accel_mps2)
+        self.speed_gain_per_s = float(t.speed_gain_per_s)
+        self.stop_speed_mps = float(motion.stop_speed_mps)
+        self.envelope_decel_mps2 = t.envelope_decel_fraction * self.max_decel_mps2
+        self.braking_margin_m = float(t.braking_margin_m)
+        self.creep_speed_mps = float(t.creep_speed_mps)
+        _check_decision_options(join=d.join, design_speeds_mps=d.design_speeds_mps,
+                                frontier_speed_mps=d.frontier_speed_mps, window_m=d.window_m,
+                                spans=d.spans, envelope_index=d.envelope_index,
+                                tolerance=d.tolerance)
+        self._join, self._speeds = d.join, d.design_speeds_mps
+        self._spans = None if d.spans is None else [tuple(map(int, s)) for s in d.spans]
+        self._design_of_span = (None if d.spans is None
                                 else {s: i for i, s in enumerate(self._spans)})
-        self.tolerance = int(tolerance)
-        self.frontier_speed_mps = (None if frontier_speed_mps is None
-                                   else self.speed_command(frontier_speed_mps))
-        self.window_m = float(window_m)
-        self.envelope_index = None if envelope_index is None else int(envelope_index)
+        self.tolerance = int(d.tolerance)
+        self.frontier_speed_mps = (None if d.frontier_speed_mps is None
+                                   else self.speed_command(d.frontier_speed_mps))
+        self.window_m = float(d.window_m)
+        self.envelope_index = None if d.envelope_index is None else int(d.envelope_index)
         period = 1.0 / rate_hz
-        self.offset_s = 0.75 * period if offset_s is None else float(offset_s)
+        self.offset_s = OFFSET_FRACTION * period
 
         initial = SpeedProfile(((-math.inf, self.speed_command(initial_speed_mps),
                                  int(initial_design_index)),))

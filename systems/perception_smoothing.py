@@ -1,31 +1,31 @@
 """Perception with its certificate, once per camera tick (DESIGN 3 and 6).
 
-A periodic unrestricted update at the camera rate (default offset T/4, after the camera's
-tick at offset 0) reads the ``frame`` input and holds a :class:`PerceptionResult`:
+A periodic unrestricted update at ``camera.rate_hz``, at :data:`OFFSET_FRACTION` (1/4) of the
+period after the camera's tick, reads the ``frame`` input and holds a :class:`PerceptionResult`
+(abstract state, output ``perception``); output ``samples`` (1): the noisy samples drawn for it.
+It reads the scenario's ``perception`` block (:class:`PerceptionSettings`: ``pipeline`` as the
+mode, ``task``, ``sigma``, ``eps``, ``n0``, ``n``, ``alpha``, ``batch_size`` and
+``resolved_decision``) and ``camera`` block (``rate_hz``, ``frame_size``):
 
-- ``mode="certified"``, ``task="classify"``, ``decision="sequential"``: the sequential
-  decision at budget eps (:meth:`SmoothedClassifier.decide`): every candidate label range
-  tested at once when n0 = 0, or those holding the top label of n0 selection samples; up to
-  n estimation samples, stopping as soon as the narrowest certifiable range is decided; the
-  run-time interval's range or an abstention.
-- with a robust conformal calibration (``interval: conformal``) and ``decision="sequential"``:
-  the conformal label set at budget eps, sampled only until its label range is decided
+- certified classification, ``sequential``: the decision at budget eps
+  (:meth:`SmoothedClassifier.decide`) over the candidate label ``ranges`` (those holding the
+  top label of n0 selection samples; all at once when n0 = 0), up to n samples; with a robust
+  ``conformal`` calibration, the conformal label set at eps, sampled until its range is decided
   (:func:`~drake_cert.certification.conformal.sequential_label_set`).
-- ``decision="fixed"``: the fixed-n certificate at the observed frame
-  (:meth:`SmoothedClassifier.certify`: n0 selection samples, n estimation samples, joint
-  Clopper-Pearson bounds at ``alpha``), from which the run-time interval of any label range
-  is read off (``drake_cert.systems.certified_interval``); the robust conformal interval needs it.
-- ``mode="certified"``, ``task="regress"``: median smoothing's ``(median, lower, upper)`` at
-  budget ``eps`` (:meth:`MedianSmoothedRegressor.certify_interval`).
-- ``mode="base"``: the raw prediction of the model f (label, or stiffness in N/rad): the
-  non-robust baseline.
+- certified classification, ``fixed``: CERTIFY at the observed frame (n0 selection, n
+  estimation samples, joint Clopper-Pearson bounds at ``alpha``), from which the run-time
+  interval of any label range is read off (``drake_cert.systems.certified_interval``).
+- certified regression: median smoothing's ``(median, lower, upper)`` at budget eps
+  (:meth:`MedianSmoothedRegressor.certify_interval`), or, sequential over given candidate
+  intervals (``ranges``, N/rad), the median's interval decided.
+- ``pipeline: base``: the raw prediction of the model f (label, or stiffness in N/rad).
 
-A frame that is not a finite float [3, H, W] image in [0, 1] of the expected size gives
+A frame that is not a finite float [3, H, W] image in [0, 1] of ``frame_size`` gives
 ``frame_ok = False`` and the reason in ``error`` (never an exception, never a prediction).
 The certificate of tick k draws its selection samples from the stream ``selection`` (k) of the
 seed and its estimation samples from ``estimation`` (k) (:mod:`drake_cert.certification.seeds`).
-Cost per tick: n0 + n forward passes of the model with a fixed-n certificate; a sequential
-decision draws between a few dozen and n (``PerceptionResult.samples``).
+Cost per tick: n0 + n forward passes with a fixed-n certificate; a sequential decision draws
+between a few dozen and n (``PerceptionResult.samples``).
 """
 
 import dataclasses
@@ -54,10 +54,20 @@ from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import look_plan, percentile_bound_indices
 from drake_cert.errors import CertificationError, ConfigError
 from drake_cert.systems.camera import CameraFrame
+from drake_cert.systems.scenario import CameraSettings, PerceptionSettings
 
 MODES = ("certified", "base")
 TASKS = ("classify", "regress")
 DECISIONS = ("sequential", "fixed")
+OFFSET_FRACTION = 0.25  # the update comes this share of a camera period after the frame
+
+
+@dataclasses.dataclass(frozen=True)
+class ModelRuntime:
+    """Where and how the perception model runs: the machine's choice, not the scenario's."""
+
+    device: str = "cpu"  # "cpu" or a CUDA device (the frames come from the CPU)
+    compile: bool = False  # compile the model for the smoothing (see SmoothedClassifier)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -115,17 +125,16 @@ class PerceptionSmoothing(LeafSystem):
 
     Args:
         model: classifier (logits over ``label_names``) or stiffness regressor, eval mode.
-        mode: "certified" (smoothed, certificate) or "base" (raw f).
-        task: "classify" or "regress".
-        sigma: noise level of the smoothing (pixel units); unused in base mode.
-        n0, n, alpha, batch_size: CERTIFY's settings (n0 unused for regression).
-        rate_hz: camera rate; offset_s: update offset (default a quarter period).
+        perception: the scenario's perception block; reads ``pipeline`` ("certified":
+            smoothed, certificate; "base": raw f), ``task``, ``sigma`` (pixel units; unused in
+            base mode), ``eps`` (L2 budget of the decision and the median bounds), CERTIFY's
+            ``n0``, ``n``, ``alpha``, ``batch_size`` (n0 unused for regression) and
+            ``resolved_decision`` ("sequential" or "fixed"; regression: sequential only with
+            ``ranges``).
+        camera: the scenario's camera block; reads ``rate_hz`` (the update's rate) and
+            ``frame_size`` (expected frames are [3, frame_size, frame_size]).
         seed: scenario seed (streams ``selection`` and ``estimation`` per tick).
         label_names: the classifier's labels (grippiest first); their count is K.
-        eps: regression budget of the median bounds (L2, pixel units).
-        frame_size: expected frames are [3, frame_size, frame_size].
-        compile: compile the model for the smoothing (see :class:`SmoothedClassifier`).
-        decision: "sequential" or "fixed" (regression: sequential only with ``ranges``).
         ranges: sequential only: the candidate label ranges, most preferred first
             (:func:`drake_cert.certification.intervals.candidate_ranges`); n0 > 0 keeps those
             holding the selection's top label; None: the top label alone. Regression: the
@@ -139,18 +148,21 @@ class PerceptionSmoothing(LeafSystem):
             result is the conformal label set at budget ``eps``, decided sequentially
             (:func:`~drake_cert.certification.conformal.sequential_label_set`, at most n
             samples); with ``"fixed"`` the certificate's votes give it downstream.
-        device: where ``model`` runs ("cpu" or a CUDA device; the frames come from the CPU).
+        runtime: where ``model`` runs and whether it is compiled (:class:`ModelRuntime`).
     """
 
-    def __init__(self, model: torch.nn.Module, *, mode: str = "certified",
-                 task: str = "classify", sigma: float = 0.25, n0: int = 100, n: int = 1000,
-                 alpha: float = 0.001, batch_size: int = 500, rate_hz: float = 10.0,
-                 offset_s: float | None = None, seed: int = 0,
-                 label_names: list[str] | tuple[str, ...] = (), eps: float = 0.0,
-                 frame_size: int = 64, compile: bool = False, decision: str = "fixed",
-                 ranges=None, alpha_spending: AlphaSpending | None = None,
-                 conformal: RobustConformalCalibration | None = None, device: str = "cpu"):
+    def __init__(self, model: torch.nn.Module, perception: PerceptionSettings | None = None,
+                 camera: CameraSettings | None = None, *, seed: int = 0,
+                 label_names: list[str] | tuple[str, ...] = (), ranges=None,
+                 alpha_spending: AlphaSpending | None = None,
+                 conformal: RobustConformalCalibration | None = None,
+                 runtime: ModelRuntime | None = None):
         super().__init__()
+        p = perception if perception is not None else PerceptionSettings()
+        camera = camera if camera is not None else CameraSettings()
+        runtime = runtime if runtime is not None else ModelRuntime()
+        mode, task, sigma, decision = p.pipeline, p.task, p.sigma, p.resolved_decision
+        rate_hz, frame_size, device = camera.rate_hz, camera.frame_size, runtime.device
         if mode not in MODES:
             raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
         if task not in TASKS:
@@ -166,18 +178,18 @@ class PerceptionSmoothing(LeafSystem):
         # regression decides sequentially only over given candidate intervals (``ranges``)
         self.decision = decision if task == "classify" or ranges is not None else "fixed"
         self.ranges = ranges
-        self.n0, self.n = int(n0), int(n)
+        self.n0, self.n = int(p.n0), int(p.n)
         self.alpha_spending = alpha_spending
         self.conformal = conformal
         # the largest alpha a decision gets (the checks below: n must reach it)
-        self.alpha = float(alpha) if alpha_spending is None else alpha_spending.planned_alpha
-        self.batch_size = int(batch_size)
+        self.alpha = float(p.alpha) if alpha_spending is None else alpha_spending.planned_alpha
+        self.batch_size = int(p.batch_size)
         self.seed = int(seed)
-        self.eps = float(eps)
+        self.eps = float(p.eps)
         self.label_names = tuple(label_names)
         self.frame_shape = (3, int(frame_size), int(frame_size))
         self.period_s = 1.0 / float(rate_hz)
-        self.offset_s = 0.25 * self.period_s if offset_s is None else float(offset_s)
+        self.offset_s = OFFSET_FRACTION * self.period_s
         self._smooth = None
         if mode == "certified":
             if task == "classify":
@@ -188,11 +200,11 @@ class PerceptionSmoothing(LeafSystem):
                 elif conformal is None:
                     check_decision_budget(self.n, self.alpha, self.eps, sigma, ranges)
                 self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
-                                                  compile=compile, device=device)
+                                                  compile=runtime.compile, device=device)
             else:
                 if self.decision == "fixed":
                     percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
-                self._smooth = MedianSmoothedRegressor(model, sigma, compile=compile,
+                self._smooth = MedianSmoothedRegressor(model, sigma, compile=runtime.compile,
                                                        device=device)
 
         initial = PerceptionResult.no_frame(mode, task)

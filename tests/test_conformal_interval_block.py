@@ -13,8 +13,10 @@ from drake_cert.synthesis.selection import preset_designs
 from drake_cert.synthesis.table import synthesize_table
 from drake_cert.systems.certified_interval import CertifiedInterval
 from drake_cert.systems.perception_smoothing import PerceptionResult
+from drake_cert.systems.scenario import PerceptionSettings
 
 PRESET, SIGMA, EPS = "carla-like", 0.25, 0.25
+PERCEPTION = PerceptionSettings(preset=PRESET, sigma=SIGMA, eps=EPS)
 
 
 @pytest.fixture(scope="module")
@@ -46,8 +48,8 @@ def test_a_confidently_wrong_vote_keeps_the_true_stiffness_only_with_the_conform
                                              num_classes=3, sigma=SIGMA, n=1000)
     # A light-rain frame (74.8 kN/rad) that g calls sunny with 90% of the votes.
     p = result_with_votes([900, 100, 0], true_label=1, stiffness=74_800.0)
-    safe_set = CertifiedInterval(designs, conditions, PRESET, eps=EPS).request(p)
-    conformal = CertifiedInterval(designs, conditions, PRESET, eps=EPS,
+    safe_set = CertifiedInterval(designs, conditions, PERCEPTION).request(p)
+    conformal = CertifiedInterval(designs, conditions, PERCEPTION,
                                   conformal=calibration).request(p)
     lo, hi = safe_set.interval
     assert not lo <= 74_800.0 <= hi  # the safe-set interval trusts g and misses
@@ -63,7 +65,7 @@ def test_the_conformal_block_falls_back_to_the_envelope_when_every_label_qualifi
                                              frames_per_label={0: 0, 1: 0, 2: 0},
                                              num_classes=3, sigma=SIGMA, n=1000)
     p = result_with_votes([1000, 0, 0], true_label=0, stiffness=100_000.0)
-    decision = CertifiedInterval(designs, conditions, PRESET, eps=EPS,
+    decision = CertifiedInterval(designs, conditions, PERCEPTION,
                                  conformal=calibration).request(p)
     assert decision.status == "envelope"
     assert decision.interval == tuple(conditions.envelope(PRESET))

@@ -12,6 +12,7 @@ from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_cert.errors import ConfigError
 from drake_cert.systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
+from drake_cert.systems.scenario import MotionSettings
 
 A_DEC, A_ACC = 4.0, 2.0
 TOL = 1e-6  # integration roundoff on the bounds
@@ -34,7 +35,7 @@ class ScriptedDecisions(LeafSystem):
 
 def _drive(decisions, *, initial_speed, t_final, initial_design=0):
     builder = DiagramBuilder()
-    motion = builder.AddSystem(LongitudinalMotion(initial_speed_mps=initial_speed,
+    motion = builder.AddSystem(LongitudinalMotion(MotionSettings(initial_speed_mps=initial_speed),
                                                   initial_design_index=initial_design))
     source = builder.AddSystem(ScriptedDecisions(decisions))
     builder.Connect(source.get_output_port(), motion.GetInputPort("decision"))
@@ -125,7 +126,7 @@ def test_speed_reference_is_the_braking_envelope_with_margin():
 
 def test_the_decision_port_takes_a_constant_value_source_and_duplicates_are_ignored():
     builder = DiagramBuilder()
-    motion = builder.AddSystem(LongitudinalMotion(initial_speed_mps=12.0))
+    motion = builder.AddSystem(LongitudinalMotion(MotionSettings(initial_speed_mps=12.0)))
     src = builder.AddSystem(ConstantValueSource(AbstractValue.Make(
         FakeDecision(0.0, 30.0, 8.0, 4))))
     builder.Connect(src.get_output_port(), motion.GetInputPort("decision"))
@@ -137,9 +138,9 @@ def test_the_decision_port_takes_a_constant_value_source_and_duplicates_are_igno
 
 def test_invalid_settings_are_config_errors():
     with pytest.raises(ConfigError, match="max_decel_mps2"):
-        LongitudinalMotion(initial_speed_mps=10.0, max_decel_mps2=0.0)
+        LongitudinalMotion(MotionSettings(initial_speed_mps=10.0, max_decel_mps2=0.0))
     with pytest.raises(ConfigError, match="initial_speed_mps"):
-        LongitudinalMotion(initial_speed_mps=-1.0)
+        LongitudinalMotion(MotionSettings(initial_speed_mps=-1.0))
 
 
 def test_the_unseen_road_between_two_look_points_gets_the_join_of_their_designs():

@@ -16,10 +16,13 @@ from drake_cert.systems.camera import CameraSource
 from drake_cert.systems.certified_interval import STATUS_CODES, CertifiedInterval
 from drake_cert.systems.perception_smoothing import PerceptionResult, PerceptionSmoothing
 from drake_cert.systems.route import Route, SegmentSpec
+from drake_cert.systems.scenario import AttackSettingsYaml, ControllerScenario, PerceptionSettings
 
 PRESET = "robotcar-like"
 SIGMA = 0.25
 EPS = 0.1
+CERTIFIED = PerceptionSettings(preset=PRESET, sigma=SIGMA, eps=EPS)
+BASE = dataclasses.replace(CERTIFIED, pipeline="base")
 
 
 @pytest.fixture(scope="module")
@@ -60,13 +63,15 @@ def _pipeline(route, conditions, labels, designs, model, *, kind="none", seed=0,
               mode="certified", dwell=0.3, attack_steps=5):
     builder = DiagramBuilder()
     camera = builder.AddSystem(CameraSource(route, conditions, PRESET, seed=seed))
-    attacker = builder.AddSystem(Attacker(kind, eps=EPS, target="base", model=model,
-                                          seed=seed, steps=attack_steps))
-    perception = builder.AddSystem(PerceptionSmoothing(
-        model, mode=mode, sigma=SIGMA, n0=20, n=n, batch_size=n, seed=seed,
-        label_names=labels))
-    interval = builder.AddSystem(CertifiedInterval(designs, conditions, PRESET, eps=EPS,
-                                                   mode=mode, dwell_time_s=dwell))
+    settings = PerceptionSettings(preset=PRESET, pipeline=mode, sigma=SIGMA, eps=EPS, n0=20,
+                                  n=n, batch_size=n, decision="fixed")
+    attacker = builder.AddSystem(Attacker(
+        AttackSettingsYaml(kind, eps=EPS, target="base", steps=attack_steps), settings,
+        model=model, seed=seed))
+    perception = builder.AddSystem(PerceptionSmoothing(model, settings, seed=seed,
+                                                       label_names=labels))
+    interval = builder.AddSystem(CertifiedInterval(designs, conditions, settings,
+                                                   ControllerScenario(dwell_time_s=dwell)))
     builder.Connect(camera.GetOutputPort("frame"), attacker.GetInputPort("frame"))
     builder.Connect(attacker.GetOutputPort("frame"), perception.GetInputPort("frame"))
     builder.Connect(perception.GetOutputPort("perception"), interval.GetInputPort("perception"))
@@ -168,8 +173,7 @@ def _scripted(label: int, tick: int, position_m: float) -> PerceptionResult:
 
 def test_the_dwell_time_holds_back_a_narrowing_with_the_join_of_both_in_force(conditions,
                                                                               labels, designs):
-    block = CertifiedInterval(designs, conditions, PRESET, eps=EPS, mode="base",
-                              dwell_time_s=0.3)
+    block = CertifiedInterval(designs, conditions, BASE, ControllerScenario(dwell_time_s=0.3))
     context = block.CreateDefaultContext()
     simulator = Simulator(block, context)
     index = {tuple(d.labels): i for i, d in enumerate(designs)}
@@ -197,8 +201,7 @@ def test_the_dwell_time_holds_back_a_narrowing_with_the_join_of_both_in_force(co
 
 
 def test_a_widening_applies_at_once_whatever_the_dwell(conditions, labels, designs):
-    block = CertifiedInterval(designs, conditions, PRESET, eps=EPS, mode="base",
-                              dwell_time_s=10.0)
+    block = CertifiedInterval(designs, conditions, BASE, ControllerScenario(dwell_time_s=10.0))
     context = block.CreateDefaultContext()
     simulator = Simulator(block, context)
     envelope = [tuple(d.labels) for d in designs].index(tuple(conditions.preset(PRESET).labels))
@@ -214,7 +217,7 @@ def test_a_widening_applies_at_once_whatever_the_dwell(conditions, labels, desig
 def test_a_design_without_safe_speed_commands_a_stop(conditions, labels, designs):
     stopped = [dataclasses.replace(d, speed_mps=0.0, failed_condition="grip")
                if tuple(d.labels) == labels else d for d in designs]
-    block = CertifiedInterval(stopped, conditions, PRESET, eps=EPS)
+    block = CertifiedInterval(stopped, conditions, CERTIFIED)
     context = block.CreateDefaultContext()  # the initial state: the envelope
     assert block.GetOutputPort("speed_command_mps").Eval(context)[0] == 0.0
     assert block.GetOutputPort("status").Eval(context)[0] == STATUS_CODES["stop"]
@@ -248,7 +251,8 @@ def test_a_regression_interval_never_takes_a_design_with_more_friction_than_it_c
         lo, hi = table.hull(rng)
         rtk.append(ControllerDesign(list(rng), lo, hi, 0.5 * (lo + hi),
                                     table.least_friction(rng), [0.0] * 4, 30.0, 100.0, 10.0))
-    block = CertifiedInterval(rtk, table, "rtk-like", eps=EPS, task="regress",
+    block = CertifiedInterval(rtk, table, PerceptionSettings(preset="rtk-like", eps=EPS,
+                                                             task="regress"),
                               regression_beta=1000.0)
     result = PerceptionResult(time_s=0.025, tick=0, position_m=40.0, frame_ok=True, error="",
                               mode="certified", task="regress",
@@ -264,13 +268,13 @@ def test_a_regression_interval_never_takes_a_design_with_more_friction_than_it_c
 def test_certified_regression_at_a_clean_frame_runs_in_the_diagram(route, conditions, labels,
                                                                    designs):
     regressor = load_model(PRESET, "regress", SIGMA)
-    block = PerceptionSmoothing(regressor, task="regress", sigma=SIGMA, n=200, batch_size=200,
-                                eps=EPS, seed=3)
+    regress = dataclasses.replace(CERTIFIED, task="regress", n=200, batch_size=200)
+    block = PerceptionSmoothing(regressor, regress, seed=3)
     frame = CameraSource(route, conditions, PRESET, seed=3).capture(0.0, 0.0, 0)
     result = block.perceive(frame, 0.025)
     assert result.frame_ok and result.regression is not None
     median, lower, upper = result.regression
     assert lower <= median <= upper
-    decision = CertifiedInterval(designs, conditions, PRESET, eps=EPS, task="regress",
+    decision = CertifiedInterval(designs, conditions, regress,
                                  regression_beta=math.inf).request(result)
     assert decision.status == "envelope"  # an infinite beta certifies nothing narrower

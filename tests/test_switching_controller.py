@@ -25,6 +25,7 @@ from drake_cert.systems.plants import (
     body_state_from_error,
 )
 from drake_cert.systems.road import Road
+from drake_cert.systems.scenario import MotionSettings
 from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
 
 CAR = load_vehicle()
@@ -277,7 +278,7 @@ def test_plants_freeze_below_the_stop_speed_without_dividing_by_zero(plant_class
 def build_motion_loop(road, decisions, *, initial_speed, stiffness, mu, fast=True):
     """Fiala plant + SwitchingL1Controller + LongitudinalMotion, curvature by arc length."""
     builder = DiagramBuilder()
-    motion = builder.AddSystem(LongitudinalMotion(initial_speed_mps=initial_speed))
+    motion = builder.AddSystem(LongitudinalMotion(MotionSettings(initial_speed_mps=initial_speed)))
     if isinstance(decisions, FakeDecision):
         source = builder.AddSystem(ConstantValueSource(AbstractValue.Make(decisions)))
     else:

@@ -105,20 +105,21 @@ def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chose
     from drake_cert.errors import ConfigError
     from drake_cert.systems.certified_interval import CertifiedInterval
     from drake_cert.systems.perception_smoothing import PerceptionResult
+    from drake_cert.systems.scenario import PerceptionSettings
 
     conditions, designs = suv_carla_designs
     scale = SUV.tire_stiffness_scale
     tires = conditions.with_stiffness_scale(scale)
-    block = CertifiedInterval(designs, tires, "carla-like", eps=0.0, mode="base",
-                              task="regress", stiffness_scale=scale)
+    base = PerceptionSettings(preset="carla-like", eps=0.0, pipeline="base", task="regress")
+    block = CertifiedInterval(designs, tires, base, stiffness_scale=scale)
     wet_lo, _ = conditions.condition("heavy_rain").interval  # reference tire
     p = dataclasses.replace(PerceptionResult.no_frame("base", "regress"), frame_ok=True,
                             base_value_n_per_rad=wet_lo)  # below every scaled interval
     decision = block.request(p)
     assert decision.status == "base"
     assert designs[decision.design_index].labels == ["heavy_rain"]
-    unscaled = CertifiedInterval(designs, tires, "carla-like", eps=0.0, mode="base",
-                                 task="regress")
+    unscaled = CertifiedInterval(designs, tires, base)
     assert unscaled.request(p).status == "envelope"  # no SUV design holds the raw value
     with pytest.raises(ConfigError, match="stiffness_scale"):
-        CertifiedInterval(designs, tires, "carla-like", eps=0.0, stiffness_scale=0.0)
+        CertifiedInterval(designs, tires, PerceptionSettings(preset="carla-like", eps=0.0),
+                          stiffness_scale=0.0)

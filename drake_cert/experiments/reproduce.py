@@ -66,6 +66,20 @@ def mode_of(pipeline: str) -> str:
     return "certified" if pipeline in ("g", "g_conformal", "h") else "base"
 
 
+def cell_perception(config: ReproduceConfig, preset: str, cell: tuple,
+                    decision: str = "fixed"):
+    """One cell's perception settings as a scenario's ``perception`` block would give them:
+    what its attacker (task, sigma), perception (and ``decision``) and interval blocks read.
+    The base pipelines' sigma 0 is given as 1 (base mode samples no noise)."""
+    from drake_cert.systems.scenario import PerceptionSettings
+
+    pipeline, sigma, _, eps = cell
+    return PerceptionSettings(
+        preset=preset, task=task_of(pipeline), pipeline=mode_of(pipeline), eps=eps,
+        sigma=sigma if sigma > 0 else 1.0, n0=config.n0, n=config.n, alpha=config.alpha,
+        batch_size=min(config.batch_size, config.n), decision=decision)
+
+
 class FrameWorker:
     """Evaluates every cell on one frame. Loads designs, models and calibrations once."""
 
@@ -180,6 +194,7 @@ class FrameWorker:
         certifies has no attacker (None) and a :class:`NeverCertifies` perception.
         """
         from drake_cert.systems.attacker import Attacker
+        from drake_cert.systems.scenario import AttackSettingsYaml
 
         key = (preset, cell)
         if key in self._blocks:
@@ -202,11 +217,11 @@ class FrameWorker:
                                                       c.device), self._interval(preset, cell))
             return self._blocks[key]
         if shared not in self._blocks:
-            attacker = Attacker(kind, eps=eps,
-                                target="smoothed" if mode == "certified" else "base",
-                                model=self.model(preset, task, sigma), sigma=sigma, task=task,
-                                seed=seed, steps=c.attack_steps,
-                                noise_draws=c.attack_noise_draws)
+            attack = AttackSettingsYaml(kind=kind, eps=eps,
+                                        target="smoothed" if mode == "certified" else "base",
+                                        steps=c.attack_steps, noise_draws=c.attack_noise_draws)
+            attacker = Attacker(attack, cell_perception(c, preset, cell),
+                                model=self.model(preset, task, sigma), seed=seed)
             self._blocks[shared] = (attacker, self._perception(preset, cell, seed, "fixed"))
         attacker, perception = self._blocks[shared]  # fixed n: both g intervals read it
         if rule == "sequential":  # each interval decides its own range, from the same streams
@@ -219,13 +234,12 @@ class FrameWorker:
         from drake_cert.synthesis.selection import preset_designs
         from drake_cert.systems.certified_interval import CertifiedInterval
 
-        pipeline, sigma, _, eps = cell
+        pipeline, sigma, _, _ = cell
         beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         return CertifiedInterval(
-            preset_designs(self.designs, self.conditions, preset), self.conditions, preset,
-            eps=eps, mode=mode_of(pipeline),
-            task=task_of(pipeline), regression_beta=beta,
-            conformal=conformal, label_names=list(self.conditions.preset(preset).labels))
+            preset_designs(self.designs, self.conditions, preset), self.conditions,
+            cell_perception(self.config, preset, cell), regression_beta=beta, conformal=conformal,
+            label_names=list(self.conditions.preset(preset).labels))
 
     def decision_rule(self, preset: str, cell: tuple) -> str:
         """"never" for a certifying cell whose budget n samples can never certify (its rows
@@ -268,10 +282,10 @@ class FrameWorker:
         """The Diagram's perception block for one cell (the cells of one noise owner draw from
         the same streams: the seed of :func:`noise_cell`)."""
         from drake_cert.certification.intervals import candidate_ranges
-        from drake_cert.systems.perception_smoothing import PerceptionSmoothing
+        from drake_cert.systems.perception_smoothing import ModelRuntime, PerceptionSmoothing
 
         c = self.config
-        pipeline, sigma, _, eps = cell
+        pipeline, sigma, _, _ = cell
         task = task_of(pipeline)
         labels = list(self.conditions.preset(preset).labels)
         sequential = decision == "sequential"
@@ -282,11 +296,9 @@ class FrameWorker:
         else:
             ranges = None
         return PerceptionSmoothing(
-            self.evaluated(preset, task, sigma), device=c.device,
-            mode=mode_of(pipeline), task=task,
-            sigma=sigma if sigma > 0 else 1.0, n0=c.n0, n=c.n, alpha=c.alpha,
-            batch_size=min(c.batch_size, c.n), seed=seed, label_names=labels, eps=eps,
-            decision=decision, conformal=conformal if sequential else None, ranges=ranges)
+            self.evaluated(preset, task, sigma), cell_perception(c, preset, cell, decision),
+            seed=seed, label_names=labels, ranges=ranges,
+            conformal=conformal if sequential else None, runtime=ModelRuntime(device=c.device))
 
     def _median_candidates(self, preset: str, sigma: float) -> list:
         """h's candidate intervals of the median at (preset, sigma), from the preset's designs
