@@ -277,7 +277,7 @@ def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tm
     assert [r for r in rows if r["position"] == 1] == alone
 
 
-def _nudged(designs, factor: float = 1.0 + 1e-9, field=None, labels=None):
+def _nudged(designs, factor: float = 1.0 + 6e-5, field=None, labels=None):
     """The design table with every float multiplied by ``factor`` (or only ``field`` of the
     design of ``labels``), as another CPU's last digits would move it."""
     import dataclasses
@@ -307,7 +307,8 @@ def _nudged(designs, factor: float = 1.0 + 1e-9, field=None, labels=None):
 def test_the_run_identity_ignores_machine_digits_but_not_a_real_change(default_design_table,
                                                                        tmp_path):
     """A store keeps the design table it was made with; a table whose every float moved by
-    1e-9 relative is that table, one with a safe speed changed in its 4th digit is not."""
+    6e-5 relative (as another CPU's solve moves it) is that table, one with a safe speed changed
+    in its 4th digit is not."""
     from drake_cert.experiments.run_store import RunStore, design_dicts, run_identity
 
     config = ReproduceConfig.quick()
