@@ -103,3 +103,21 @@ def test_g_has_a_clean_table_with_instability_velocity_and_certified_share(text)
     section = text.split("### Smoothed classifier g, clean (no attack)")[1].split("###")[0]
     assert "carla-like instab. (%) | carla-like vel. (m/s) | carla-like certified (%)" in section
     assert "| 0.25 | 0.00 | 12.00 | 100.00 |" in section
+
+
+def test_a_cell_decided_sequentially_has_no_mse_but_its_other_metrics():
+    """h's sequential median decision certifies an interval holding the median without
+    estimating it: such a cell's MSE is nan, not a crash, and a cell with point estimates
+    averages only those."""
+    import math
+
+    def row(predicted, left):
+        return dict(preset="carla-like", task="regress", pipeline="h", sigma=0.5,
+                    attack="sa", eps=0.25, predicted=predicted, true_label="dry",
+                    stiffness_n_per_rad=80000.0, left_lane=left, velocity_mps=14.0,
+                    certificate=0.0, certified=True, interval_covers=True)
+
+    decided, = tables.summarize([row(None, False), row(None, True)], 0.25, 0)
+    assert math.isnan(decided["mse"]) and decided["instability_pct"] == 50.0
+    mixed, = tables.summarize([row(82000.0, False), row(None, False)], 0.25, 0)
+    assert mixed["mse"] == 4.0  # (2 kN/rad)^2 from the one estimate

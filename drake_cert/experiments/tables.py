@@ -9,7 +9,8 @@ their own rows or columns, named "paper's ..." (see ``PAPER``).
 Metrics (DESIGN 7), per cell (preset, task, pipeline, sigma, attack, eps) over its frames:
 - accuracy: share (%) of frames whose predicted label is the true one (classification);
 - mse: mean squared error of the stiffness prediction, in (kN/rad)^2 (regression; the
-  median for h);
+  median for h, nan in h's cells decided sequentially: that decision certifies an interval
+  holding the median without estimating the median itself);
 - instability_pct: share (%) of episodes that left the lane on the Fiala plant;
 - velocity_mps: mean design speed (m/s; a stop counts as 0);
 - certificate: mean certified radius of the run-time label range at the observed frame
@@ -131,8 +132,9 @@ def summarize(rows: list[dict], main_eps: float, root_seed: int) -> list[dict]:
             pipeline=pipeline, sigma=sigma, attack=attack, eps=eps, frames=len(rs),
             accuracy=100.0 * _mean([r["predicted"] == r["true_label"] for r in rs])
             if classify else math.nan,
-            mse=math.nan if classify else _mean(
-                [((r["predicted"] - r["stiffness_n_per_rad"]) / 1e3) ** 2 for r in rs]),
+            mse=math.nan if classify else _mean(  # nan where no row has a point estimate
+                [((r["predicted"] - r["stiffness_n_per_rad"]) / 1e3) ** 2 for r in rs
+                 if r["predicted"] is not None]),
             instability_pct=100.0 * _mean([r["left_lane"] for r in rs]),
             velocity_mps=_mean([r["velocity_mps"] for r in rs]),
             certificate=_mean([r["certificate"] for r in rs])
