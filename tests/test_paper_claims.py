@@ -92,6 +92,11 @@ def test_the_failing_summary_names_each_failing_claim_once_with_where_it_fails()
     assert fast.endswith("fails on carla-like eps 0.25 (g)")
     assert any(x.endswith("fails on carla-like clean") for x in lines)  # f_reg's clean claim
     assert pc.failing(pc.paper_claims([r for i in range(3) for r in frame(i)], (0.25,))) == []
+    everywhere = [dict(r, preset=p) for i in range(2) for p in ("carla-like", "rtk-like")
+                  for r in frame(i, g_ea_v=6.5)]
+    fast = next(x for x in pc.failing(pc.paper_claims(everywhere, (0.25,)))
+                if x.startswith(pc.STATEMENTS["g_at_least_as_fast_as_f_under_ea"]))
+    assert fast.endswith("fails on every preset, budget and interval tested (2 of 2)")
 
 
 def test_a_budget_the_run_did_not_evaluate_is_not_tested_never_holds():

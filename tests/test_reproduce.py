@@ -4,6 +4,7 @@ whatever the executor, every row recomputable alone."""
 import csv
 import json
 import time
+from pathlib import Path
 
 import pytest
 
@@ -366,3 +367,17 @@ def test_a_store_begun_in_other_bf16_digits_is_not_finished_here(default_design_
     (tmp_path / "store" / MANIFEST).write_text(json.dumps(manifest))
     with pytest.raises(ConfigError, match="made in bf16 .* this CPU"):
         RunStore(tmp_path / "store").check_arithmetic(identity, "bf16")
+
+
+@pytest.mark.slow  # 10 s on 2 cores with the design table cached, more without
+def test_the_committed_default_run_is_rewritten_byte_for_byte_from_its_store(tmp_path):
+    """results/paper's tables, claims and frames come back byte for byte from its store alone
+    (--from-store computes nothing: a refused identity or a missing frame fails here)."""
+    import shutil
+
+    paper = Path(__file__).resolve().parents[1] / "results" / "paper"
+    shutil.copytree(paper / "store", tmp_path / "store")
+    assert main(["reproduce", "--from-store", "--precision", "fp32", "--no-plots",
+                 "--out", str(tmp_path)]) == 0
+    for name in ("frames.csv", "results.csv", "tables.md", "claims.md", "claims.json"):
+        assert (tmp_path / name).read_bytes() == (paper / name).read_bytes(), name

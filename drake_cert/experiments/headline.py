@@ -83,8 +83,8 @@ def read_frames_csv(path: str | Path, rename: dict[str, str] | None = None) -> l
             for k in _INT:
                 if k in r:
                     r[k] = int(r[k])
-            if r.get("task") == "regress":
-                r["predicted"] = float(r["predicted"])
+            if r.get("task") == "regress":  # "": no point estimate (h decided sequentially)
+                r["predicted"] = float(r["predicted"]) if r["predicted"] != "" else None
         except ValueError as exc:
             raise ConfigError(f"{path} line {reader.line_num}: {exc}") from None
         if rename:

@@ -382,10 +382,15 @@ def failing(claims: list[dict]) -> list[str]:
     """One line per claim that fails somewhere: its statement and where it fails (preset,
     budget, g's interval), in the order of ``claims``; the README's summary quotes these."""
     where: dict[str, list[str]] = {}
+    tested: dict[str, int] = {}
     for c in claims:
+        if c["holds"] is not None:
+            tested[c["claim"]] = tested.get(c["claim"], 0) + 1
         if c["holds"] is False:
             budget = "clean" if c["budget"] is None else f"eps {c['budget']:g}"
             pipe = f" ({c['pipeline']})" if c["pipeline"] else ""
             where.setdefault(c["claim"], []).append(f"{c['preset']} {budget}{pipe}")
-    return [f"{STATEMENTS[claim]}: fails on {', '.join(places)}"
+    return [f"{STATEMENTS[claim]}: fails on every preset, budget and interval tested "
+            f"({len(places)} of {tested[claim]})" if len(places) == tested[claim] > 1
+            else f"{STATEMENTS[claim]}: fails on {', '.join(places)}"
             for claim, places in where.items()]

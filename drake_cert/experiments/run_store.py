@@ -11,8 +11,8 @@ design table that equals a stored one within ``DESIGN_RTOL`` (relative, plus ``D
 in every float, with the same labels and conditions, is hashed as that stored table
 (:func:`canonical_designs`). The tolerance is the SDP solver's, not the machine's last digits:
 an interior-point solve lands elsewhere within its own tolerance on another CPU (gains and
-margins moved by up to 5.3e-5 relative between two AMD EPYC machines). A real change (a safe
-speed in its 4th digit, 5e-4 relative) is outside it and makes a new identity.
+margins moved by up to 5.3e-5 relative between an AMD EPYC and an Intel Xeon). A real change
+(a safe speed in its 4th digit, 5e-4 relative) is outside it and makes a new identity.
 
 Arithmetic. The precision (fp32 or bf16) is part of the identity: it changes the numbers.
 Whether bf16 ran natively (AVX512-BF16 or AMX) or emulated is not, but it changes the last
@@ -30,8 +30,8 @@ from drake_cert.errors import ConfigError
 from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
 
 # relative tolerance of "the same design table": Clarabel's solves of the same LMIs differ by up
-# to 5.3e-5 relative from one CPU to another (measured, 2026-11-28: the L1-condition margin of a
-# rain design; gains k_m up to 9.3e-6), with the same safe speeds
+# to 5.3e-5 relative from one CPU to another (measured 2026-11-28, AMD EPYC vs Intel Xeon: the
+# L1-condition margin of a rain design; gains k_m up to 9.3e-6), with the same safe speeds
 DESIGN_RTOL = 1e-4
 DESIGN_ATOL = 1e-9  # absolute floor, for margins near 0
 MANIFEST = "identity.json"
