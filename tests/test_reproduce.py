@@ -37,6 +37,9 @@ def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
     assert cpu["all"] == pytest.approx(cpu["frames"] + cpu["calibration_h"]
                                        + cpu["calibration_conformal"], abs=0.11)
     assert cpu["invocations_without"] == 0 and meta["runs"][-1]["cpu_s"]["frames"] > 0
+    # one invocation: the store's ledger holds the same seconds, and a part count per stage
+    ledger = meta["store_cpu_s"]
+    assert ledger["frames_parts"] == 6 and ledger["all"] == pytest.approx(cpu["all"], abs=0.2)
     rows = read_csv(quick_local / "results.csv")
     assert set(COLUMNS) <= set(rows[0])
     presets = {r["preset"] for r in rows}
@@ -211,6 +214,12 @@ def test_a_stopped_run_resumes_from_its_store_with_the_same_rows(quick_local, tm
     again = CountingExecutor()
     rows = run_reproduction(config, again, store=store)
     assert again.ran == 1
+    # the store's CPU ledger counts every part once, whichever invocation made it
+    (cost,) = json.loads((tmp_path / "store" / "cpu.json").read_text()).values()
+    assert (cost["frames_parts"], cost["calibration_h_parts"],
+            cost["calibration_conformal_parts"]) == (2, len(config.sigmas),
+                                                     len(conformal_sigmas(config)))
+    assert min(cost["frames"], cost["calibration_h"], cost["calibration_conformal"]) > 0
     full = [r for r in read_csv(quick_local / "frames.csv") if r["preset"] == "rtk-like"]
     assert len(rows) == len(full)
     for a, f in zip(rows, full, strict=True):
@@ -381,3 +390,16 @@ def test_the_committed_default_run_is_rewritten_byte_for_byte_from_its_store(tmp
                  "--out", str(tmp_path)]) == 0
     for name in ("frames.csv", "results.csv", "tables.md", "claims.md", "claims.json"):
         assert (tmp_path / name).read_bytes() == (paper / name).read_bytes(), name
+
+
+def test_the_cpu_ledger_sums_each_stage_over_invocations_and_identities_apart(tmp_path):
+    from drake_cert.experiments.run_store import RunStore
+
+    store = RunStore(tmp_path / "store")
+    assert store.cpu("a") == {}  # a store made before the ledger
+    store.add_cpu("a", "frames", 10.04)
+    RunStore(tmp_path / "store").add_cpu("a", "frames", 5.0)  # a later invocation
+    store.add_cpu("a", "calibration_h", 2.5)
+    store.add_cpu("b", "frames", 99.0)
+    assert RunStore(tmp_path / "store").cpu("a") == dict(
+        frames=15.0, frames_parts=2, calibration_h=2.5, calibration_h_parts=1, all=17.5)

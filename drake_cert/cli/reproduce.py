@@ -248,7 +248,9 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
                 executor=args.executor, workers=args.workers if args.executor == "ray" else 1,
                 frame_cells=len(rows), frames_done=done, complete=complete,
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1),
-                total_cpu_s=_total_cpu(runs), runs=runs)
+                total_cpu_s=_total_cpu(runs),
+                # every stored part's CPU, stopped invocations included ({}: made before it)
+                store_cpu_s=store.cpu(store.identity(config, designs)), runs=runs)
     written = outputs.write_results(out, rows, summary, config, load_conditions(), meta,
                                     plots=not args.no_plots, designs=designs)
     document = json.loads((out / "claims.json").read_text())

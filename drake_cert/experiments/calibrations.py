@@ -66,11 +66,12 @@ class CalibrationWorker:
 def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
                      put: Callable[[dict], None], executor=None,
                      progress: Callable[[int], None] | None = None,
-                     spent: list[float] | None = None) -> dict:
+                     spent: list[float] | None = None,
+                     charge: Callable[[float], None] | None = None) -> dict:
     """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
     ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
     ``put(stored)`` as it arrives (a stopped run keeps them); the workers' CPU seconds are
-    appended to ``spent``."""
+    appended to ``spent`` and handed to ``charge`` (the store's ledger) after each put."""
     from drake_cert.experiments.executors import LocalExecutor, cpu_timed
 
     todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
@@ -81,6 +82,8 @@ def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
         if spent is not None:
             spent.append(cpu_s)
         put(stored)
+        if charge is not None:
+            charge(cpu_s)
 
     if progress is not None:
         progress(len(tasks) - len(todo))
@@ -98,8 +101,10 @@ def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | 
     tasks = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
     stored = store.betas(identity) if store is not None else {}
     put = (lambda b: store.put_betas(identity, b)) if store is not None else (lambda b: None)
+    charge = (lambda s: store.add_cpu(identity, "calibration_h", s)) \
+        if store is not None else None
     return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
-                            progress, spent)
+                            progress, spent, charge)
 
 
 def conformal_sigmas(config: ReproduceConfig) -> list[float]:
@@ -147,5 +152,7 @@ def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunSto
     tasks = [CalibrationTask(p, s) for p in config.presets for s in conformal_sigmas(config)]
     stored = store.conformal(identity) if store is not None else {}
     put = (lambda c: store.put_conformal(identity, c)) if store is not None else (lambda c: None)
+    charge = (lambda s: store.add_cpu(identity, "calibration_conformal", s)) \
+        if store is not None else None
     return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
-                            progress, spent)
+                            progress, spent, charge)

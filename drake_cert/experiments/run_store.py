@@ -19,6 +19,9 @@ Whether bf16 ran natively (AVX512-BF16 or AMX) or emulated is not, but it change
 digits too, so a store is not finished in the other kind of bf16 (:meth:`RunStore.check_arithmetic`
 refuses, saying so); rewriting its tables (``--from-store``) computes nothing and works
 anywhere. The CPU, its flags and torch's version are recorded beside every frame, as metadata.
+
+Cost. ``cpu.json`` is a ledger of the workers' CPU seconds per identity and stage, added as each
+calibration and frame is stored, so a run's cost survives the invocations that made it.
 """
 
 from __future__ import annotations
@@ -35,6 +38,7 @@ from drake_cert.experiments.reproduce_config import FrameTask, ReproduceConfig
 DESIGN_RTOL = 1e-4
 DESIGN_ATOL = 1e-9  # absolute floor, for margins near 0
 MANIFEST = "identity.json"
+CPU_LEDGER = "cpu.json"  # the workers' CPU seconds per stage and identity, as parts are stored
 
 
 def model_files(config: ReproduceConfig) -> list[tuple[str, str, float]]:
@@ -317,6 +321,39 @@ class RunStore:
         """The revisions that computed the frames of ``tasks`` (read or written here)."""
         return sorted({self.computed_by[(t.preset, t.position)] for t in tasks
                        if (t.preset, t.position) in self.computed_by})
+
+    def add_cpu(self, identity: str, stage: str, seconds: float) -> None:
+        """Add ``seconds`` of the workers' CPU time to ``stage`` of ``identity``'s ledger
+        (``cpu.json``), as each part is stored: the run's cost, whichever invocations made it
+        (a stopped invocation's finished parts included; its unfinished ones are not)."""
+        import json
+
+        from drake_cert.io import atomic_write_text
+
+        path = self.root / CPU_LEDGER
+        ledger = self._ledger()
+        entry = ledger.setdefault(identity, {})
+        entry[stage] = entry.get(stage, 0.0) + float(seconds)  # rounded when read
+        entry[f"{stage}_parts"] = entry.get(f"{stage}_parts", 0) + 1
+        atomic_write_text(path, json.dumps(ledger, indent=1, sort_keys=True) + "\n")
+
+    def cpu(self, identity: str) -> dict:
+        """``identity``'s ledger: CPU seconds per stage, how many parts each counts, and their
+        sum (``all``); {} when the store has none (made before the ledger)."""
+        entry = self._ledger().get(identity, {})
+        if not entry:
+            return {}
+        seconds = {k: v for k, v in entry.items() if not k.endswith("_parts")}
+        return dict({k: round(v, 1) for k, v in entry.items()},
+                    all=round(sum(seconds.values()), 1))
+
+    def _ledger(self) -> dict:
+        import json
+
+        try:
+            return json.loads((self.root / CPU_LEDGER).read_text())
+        except (OSError, ValueError):
+            return {}
 
     def betas(self, identity: str) -> dict:
         stored = self._read(self.root / "calibration.json", identity)
