@@ -64,14 +64,13 @@ class CalibrationWorker:
 
 
 def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
-                     put: Callable[[dict], None], executor=None,
+                     put: Callable[[dict, float], None], executor=None,
                      progress: Callable[[int], None] | None = None,
-                     spent: list[float] | None = None,
-                     charge: Callable[[float], None] | None = None) -> dict:
+                     spent: list[float] | None = None) -> dict:
     """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
     ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
-    ``put(stored)`` as it arrives (a stopped run keeps them); the workers' CPU seconds are
-    appended to ``spent`` and handed to ``charge`` (the store's ledger) after each put."""
+    ``put(stored, cpu_s)`` as it arrives with its workers' CPU seconds (a stopped run keeps
+    them, and the store's ledger their cost); the seconds are also appended to ``spent``."""
     from drake_cert.experiments.executors import LocalExecutor, cpu_timed
 
     todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
@@ -81,9 +80,7 @@ def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
         stored[(todo[index].preset, todo[index].sigma)] = value
         if spent is not None:
             spent.append(cpu_s)
-        put(stored)
-        if charge is not None:
-            charge(cpu_s)
+        put(stored, cpu_s)
 
     if progress is not None:
         progress(len(tasks) - len(todo))
@@ -100,11 +97,10 @@ def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | 
         return {}
     tasks = [CalibrationTask(p, s) for p in config.presets for s in config.sigmas]
     stored = store.betas(identity) if store is not None else {}
-    put = (lambda b: store.put_betas(identity, b)) if store is not None else (lambda b: None)
-    charge = (lambda s: store.add_cpu(identity, "calibration_h", s)) \
-        if store is not None else None
+    put = (lambda b, s: store.put_betas(identity, b, s)) if store is not None \
+        else (lambda b, s: None)
     return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
-                            progress, spent, charge)
+                            progress, spent)
 
 
 def conformal_sigmas(config: ReproduceConfig) -> list[float]:
@@ -151,8 +147,7 @@ def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunSto
         return {}
     tasks = [CalibrationTask(p, s) for p in config.presets for s in conformal_sigmas(config)]
     stored = store.conformal(identity) if store is not None else {}
-    put = (lambda c: store.put_conformal(identity, c)) if store is not None else (lambda c: None)
-    charge = (lambda s: store.add_cpu(identity, "calibration_conformal", s)) \
-        if store is not None else None
+    put = (lambda c, s: store.put_conformal(identity, c, s)) if store is not None \
+        else (lambda c, s: None)
     return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
-                            progress, spent, charge)
+                            progress, spent)

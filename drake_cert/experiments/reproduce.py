@@ -422,8 +422,7 @@ def run_reproduction(config: ReproduceConfig, executor=None,
         done[todo[index]] = rows
         spent["frames"].append(cpu_s)
         if store is not None:
-            store.put_frame(identity, todo[index], rows)
-            store.add_cpu(identity, "frames", cpu_s)
+            store.put_frame(identity, todo[index], rows, cpu_s)
 
     update = bar("frames", len(tasks))
     if update is not None:

@@ -310,12 +310,15 @@ class RunStore:
             "computed_by_revision", stored.get("git_revision", "unknown"))
         return stored["rows"]
 
-    def put_frame(self, identity: str, task: FrameTask, rows: list[dict]) -> None:
+    def put_frame(self, identity: str, task: FrameTask, rows: list[dict],
+                  cpu_s: float | None = None) -> None:
+        """Store a frame's rows; ``cpu_s`` (its workers' CPU seconds) goes to the ledger."""
         entry = self._entries.get(identity)
         extra = {} if entry is None else dict(
             arithmetic=self.arithmetic(entry["settings"]["precision"]))
         self._write(self._frame_path(task), identity, rows=rows, **extra)
         self.computed_by[(task.preset, task.position)] = self.revision
+        self._charge(identity, "frames", cpu_s)
 
     def revisions(self, tasks) -> list[str]:
         """The revisions that computed the frames of ``tasks`` (read or written here)."""
@@ -361,9 +364,11 @@ class RunStore:
             return {}
         return {(p, float(s)): float(b) for p, s, b in stored["betas"]}
 
-    def put_betas(self, identity: str, betas: dict) -> None:
+    def put_betas(self, identity: str, betas: dict, cpu_s: float | None = None) -> None:
+        """Store every beta so far; ``cpu_s`` is the newest one's cost (ledger)."""
         self._write(self.root / "calibration.json", identity,
                     betas=[[p, s, b] for (p, s), b in sorted(betas.items())])
+        self._charge(identity, "calibration_h", cpu_s)
 
     def conformal(self, identity: str) -> dict:
         from drake_cert.certification.conformal import RobustConformalCalibration
@@ -374,10 +379,17 @@ class RunStore:
         return {(p, float(s)): RobustConformalCalibration.from_json(c)
                 for p, s, c in stored["calibrations"]}
 
-    def put_conformal(self, identity: str, calibrations: dict) -> None:
+    def put_conformal(self, identity: str, calibrations: dict,
+                      cpu_s: float | None = None) -> None:
+        """Store every conformal calibration so far; ``cpu_s`` is the newest one's cost."""
         self._write(self.root / "conformal.json", identity,
                     calibrations=[[p, s, c.to_json()] for (p, s), c in
                                   sorted(calibrations.items())])
+        self._charge(identity, "calibration_conformal", cpu_s)
+
+    def _charge(self, identity: str, stage: str, cpu_s: float | None) -> None:
+        if cpu_s is not None:
+            self.add_cpu(identity, stage, cpu_s)
 
     def _write(self, path, identity: str, **content) -> None:
         import json
