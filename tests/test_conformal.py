@@ -22,6 +22,7 @@ from drake_cert.certification.conformal import (
     calibrate_robust_conformal,
     conformal_interval,
     conformal_looks,
+    labels_that_stay,
     lower_conformal_quantile,
     sequential_label_set,
 )
@@ -183,7 +184,7 @@ def test_the_sequential_set_keeps_the_coverage_and_stops_early_where_the_range_i
             misses += not lo <= stiffness[i] <= hi
             samples.append(d.samples)
             assert d.looks == conformal_looks(1000) and d.reason in ("narrowest", "settled",
-                                                                      "n_max")
+                                                                      "fixed", "n_max")
             fixed = smooth.sample_counts(seen[i], 1000, 1000, None)
             lo, hi = conformal_interval(fixed, calibration, table, PRESET, eps).interval
             fixed_misses += not lo <= stiffness[i] <= hi
@@ -192,6 +193,38 @@ def test_the_sequential_set_keeps_the_coverage_and_stops_early_where_the_range_i
     assert misses <= 13 and fixed_misses <= 13
     # the analytic classifier is unanimous on most frames: their range is decided early
     assert np.median(samples) <= 128 and max(samples) <= 1000
+
+
+def test_a_set_no_sample_can_narrow_is_decided_before_the_first_sample(setup):
+    # At eps / sigma = 4 every threshold is below the upper bound of a label with no vote in
+    # n_max samples: every label stays in the set whatever is drawn, so the range is the
+    # envelope with n_max samples as with none, and none are drawn.
+    smooth, calibration = setup
+    images, _, _ = make_frames(3, seed=5)
+    table = load_conditions()
+    for i in range(len(images)):
+        early = sequential_label_set(smooth, images[i], calibration, 1.0, 1000, 1000, seed=i)
+        assert (early.samples, early.reason) == (0, "fixed")
+        assert early.label_set == (0, 1, 2)
+        assert conformal_interval(early, calibration, table, PRESET, 1.0).interval == \
+            table.envelope(PRESET)
+
+
+def test_labels_that_stay_stay_whatever_votes_come_until_the_most_samples():
+    # A label judged to stay at (count k, n_max) has its upper bound at its threshold at every
+    # later look m <= n_max and every count k' >= k: the bound rises with the count and falls
+    # with the samples.
+    rng = np.random.default_rng(0)
+    level, n_max = 0.001 / 5, 1000
+    for _ in range(200):
+        k = int(rng.integers(0, 60))
+        look = int(rng.integers(max(k, 1), 400))
+        t = float(rng.uniform(0.0, 0.05))
+        if not labels_that_stay(np.array([k]), n_max, level, np.array([t]))[0]:
+            continue
+        for later in (look, (look + n_max) // 2, n_max):
+            for more in (0, int(rng.integers(0, later - look + 1))):
+                assert clopper_pearson_one_sided(k + more, later, level)[1] >= t
 
 
 def test_conformal_looks_double_up_to_the_most_samples():

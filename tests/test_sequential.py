@@ -250,6 +250,9 @@ def test_median_decision_certifies_an_interval_that_holds_the_quantiles():
     assert d.certified and d.interval == wide[0] and d.index == 1
     assert d.base_value == pytest.approx(50_000.0)
     assert d.samples < 400
+    # the point estimate: the median of the outputs drawn (standard error about 1.25 x 1k /
+    # sqrt(samples) < 90 N/rad here)
+    assert abs(d.sample_median - 50_000.0) < 500.0
     none = h.decide(FRAME, EPS, 0.001, 4000, 1000, lambda v: tight, seed=2)
     assert not none.certified and none.reason == "futile" and none.interval is None
 

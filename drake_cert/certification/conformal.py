@@ -180,7 +180,9 @@ class ConformalDecision:
     ``counts``: the votes drawn; ``samples``: their number; ``looks``: the looks planned (each
     label's upper bound is taken at ``beta_test / len(looks)`` at every look); ``reason``:
     "narrowest" (one label), "settled" (both ends of the label range are in the set at the
-    settling level: more samples would not narrow it), "n_max" (the last look).
+    settling level: more samples would not narrow it), "fixed" (the range is every label and
+    neither end can leave it whatever the votes still to come: 0 samples where no count could
+    exclude them), "n_max" (the last look).
     """
 
     label_set: tuple[int, ...]
@@ -218,7 +220,9 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
     the module's argument therefore holds at whichever look it stops, and the coverage stays
     ``1 - alpha_total``. It stops at the first look where the set's range is one label, or
     where both end labels of the range have a lower bound (at ``settle_level``; a stopping
-    rule only, no guarantee rests on it) above their threshold, or at ``n_max``.
+    rule only, no guarantee rests on it) above their threshold, or where the range is every
+    label and neither end can leave it by ``n_max`` (:func:`labels_that_stay`; before the first
+    sample where no count could exclude them: the envelope, free), or at ``n_max``.
     """
     check_count(batch_size, "batch_size")
     check_alpha(settle_level, "settle_level")
@@ -234,7 +238,11 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
     counts = np.zeros(k, dtype=np.int64)
     gen = make_generator(seed, classifier.device)
     members, reason = np.zeros(k, dtype=bool), "n_max"
-    for look in looks:
+    if labels_that_stay(counts, n_max, level, thresholds)[[0, k - 1]].all():
+        members, reason, looks_left = np.ones(k, dtype=bool), "fixed", ()
+    else:
+        looks_left = looks
+    for look in looks_left:
         drawn = int(counts.sum())
         counts += classifier.sample_counts(x, look - drawn, batch_size, gen)
         up = clopper_pearson_one_sided(counts, look, level)[1]
@@ -246,12 +254,24 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
         if lo == hi:
             reason = "narrowest"
             break
+        if lo == 0 and hi == k - 1 and \
+                labels_that_stay(counts, n_max, level, thresholds)[[lo, hi]].all():
+            reason = "fixed"
+            break
         low = clopper_pearson_one_sided(counts[[lo, hi]], look, settle_level)[0]
         if low[0] >= thresholds[lo] and low[1] >= thresholds[hi]:
             reason = "settled"
             break
     return ConformalDecision(tuple(int(i) for i in np.flatnonzero(members)), counts,
                              int(counts.sum()), looks, float(calibration.beta_test), reason)
+
+
+def labels_that_stay(counts: np.ndarray, n_max: int, level: float,
+                     thresholds: np.ndarray) -> np.ndarray:
+    """Which labels are in the set at every look up to ``n_max`` whatever the votes still to
+    come: a label's upper bound only falls while samples come without its votes, and with its
+    present count at ``n_max`` samples it is still at its threshold."""
+    return clopper_pearson_one_sided(np.asarray(counts), n_max, level)[1] >= thresholds
 
 
 @dataclasses.dataclass(frozen=True)

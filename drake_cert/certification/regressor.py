@@ -45,6 +45,7 @@ class MedianDecision:
     alpha: float
     bound: str
     reason: str  # "certified", "futile" or "n_max"
+    sample_median: float | None = None  # lower median of the outputs drawn (N/rad); None at 0
 
 
 class MedianSmoothedRegressor(SmoothedModel):
@@ -141,6 +142,7 @@ class MedianSmoothedRegressor(SmoothedModel):
         below = dict.fromkeys(his, 0)  # samples with y <= hi
         above = dict.fromkeys(los, 0)  # samples with y >= lo
         t, gen, chosen, reason = 0, make_generator(seed, self.device), -1, "n_max"
+        drawn = []  # the outputs, for the point estimate only (no bound rests on it)
         with torch.inference_mode():
             for look in plan.looks:
                 for out in self._sampler.outputs(x, look - t, int(batch_size), gen):
@@ -152,6 +154,7 @@ class MedianSmoothedRegressor(SmoothedModel):
                     for lo in los:
                         above[lo] += int((y >= lo).sum())
                     t += int(y.shape[0])
+                    drawn.append(y.to("cpu", torch.float64).numpy())
                 hi_b = {hi: plan.bounds(below[hi], t) for hi in his}
                 lo_b = {lo: plan.bounds(above[lo], t) for lo in los}
                 live = next((i for i, (lo, hi) in enumerate(candidates)
@@ -168,9 +171,11 @@ class MedianSmoothedRegressor(SmoothedModel):
             chosen = next((i for i, (lo, hi) in enumerate(candidates)
                            if hi_b[hi][0] > p_high and lo_b[lo][0] > p_high), -1) \
                 if reason == "n_max" else -1
+        ys = np.sort(np.concatenate(drawn)) if drawn else None
         return MedianDecision(chosen >= 0, candidates[chosen] if chosen >= 0 else None, chosen,
                               base_value, t, float(eps), float(alpha), plan.name,
-                              "certified" if chosen >= 0 else reason)
+                              "certified" if chosen >= 0 else reason,
+                              float(ys[math.ceil(t / 2) - 1]) if t else None)
 
 
 @dataclasses.dataclass(frozen=True)

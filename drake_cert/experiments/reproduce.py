@@ -315,12 +315,16 @@ class FrameWorker:
             return names[result.certificate.top_label]
         if result.decision is not None:  # sequential: the label it certified through
             return names[result.decision.top_label]
-        if result.conformal is not None:  # a sequential conformal set: the most votes
+        if result.conformal is not None and result.conformal.samples:
+            # a sequential conformal set: the most votes (a set fixed before its first sample
+            # has none: the base model's label, as for a cell that never certifies)
             return names[int(result.conformal.counts.argmax())]
         if result.base_label is not None and result.task == "classify":
             return names[result.base_label]
         if result.regression is not None:
             return float(result.regression[0])
+        if result.median is not None:  # h decided sequentially: the median of its samples
+            return result.median.sample_median
         if result.base_value_n_per_rad is not None:
             return float(result.base_value_n_per_rad)
         return None
