@@ -9,7 +9,11 @@ calibrations) are computed first, once, with the default backend, timed, and giv
 variants. Each stage's CPU time is summed over the frames: attacks (``Attacker.perturb``),
 certificates (``PerceptionSmoothing.perceive``) and episodes (``EpisodeRunner.outcome``).
 
+With ``--cells K`` it also prints the K costliest cells of the default variant (CPU seconds a
+frame per stage, and how the cell is decided); ``--default-only`` skips the fixed-n variant.
+
 Usage: python benchmarks/bench_reproduce_frame.py [--preset robotcar-like] [--positions 0 1]
+       [--cells 12] [--default-only]
 """
 
 from __future__ import annotations
@@ -33,24 +37,33 @@ STAGES = {"attacks": (Attacker, "perturb"), "certificates": (PerceptionSmoothing
           "episodes": (EpisodeRunner, "outcome")}
 
 
-def timed(spent: dict):
-    """Wrap each stage's method so that its time adds to ``spent[stage]``; returns an undo."""
-    originals = {}
-    for stage, (cls, name) in STAGES.items():
-        original = getattr(cls, name)
-        originals[stage] = original
+def timed(spent: dict, per_cell: dict):
+    """Wrap each stage's method so that its time adds to ``spent[stage]`` and to
+    ``per_cell[(stage, cell)]`` (the cell whose blocks the worker fetched last); returns an
+    undo."""
+    originals = {name: getattr(cls, name) for cls, name in STAGES.values()}
+    originals["blocks"] = FrameWorker.blocks
+    current = [None]
 
-        def wrapper(self, *a, _original=original, _stage=stage, **k):
+    def blocks(self, preset, cell):
+        current[0] = cell
+        return originals["blocks"](self, preset, cell)
+    FrameWorker.blocks = blocks
+    for stage, (cls, name) in STAGES.items():
+        def wrapper(self, *a, _original=originals[name], _stage=stage, **k):
             start = time.process_time()
             try:
                 return _original(self, *a, **k)
             finally:
-                spent[_stage] += time.process_time() - start
+                used = time.process_time() - start
+                spent[_stage] += used
+                per_cell[(_stage, current[0])] += used
         setattr(cls, name, wrapper)
 
     def undo():
-        for stage, (cls, name) in STAGES.items():
-            setattr(cls, name, originals[stage])
+        FrameWorker.blocks = originals["blocks"]
+        for cls, name in STAGES.values():
+            setattr(cls, name, originals[name])
     return undo
 
 
@@ -67,10 +80,12 @@ def calibrate(config: ReproduceConfig, preset: str) -> tuple[dict, dict, float]:
     return betas, conformal, time.process_time() - start
 
 
-def run_frames(config, positions, preset, designs, betas, conformal) -> dict:
-    """CPU seconds per stage over the frames, and the total."""
+def run_frames(config, positions, preset, designs, betas, conformal):
+    """CPU seconds per stage over the frames and the total; CPU seconds per (stage, cell); the
+    worker (its decision rule names how each cell is decided)."""
     spent: dict = defaultdict(float)
-    undo = timed(spent)
+    per_cell: dict = defaultdict(float)
+    undo = timed(spent, per_cell)
     try:
         worker = FrameWorker(config, betas=betas, designs=designs, conformal=conformal)
         start = time.process_time()
@@ -79,7 +94,7 @@ def run_frames(config, positions, preset, designs, betas, conformal) -> dict:
         spent["total"] = time.process_time() - start
     finally:
         undo()
-    return dict(spent)
+    return dict(spent), dict(per_cell), worker
 
 
 def main() -> None:
@@ -90,6 +105,10 @@ def main() -> None:
     parser.add_argument("--preset", default="robotcar-like")
     parser.add_argument("--positions", type=int, nargs="+", default=[0, 1],
                         help="which of the preset's frames")
+    parser.add_argument("--cells", type=int, default=0,
+                        help="print the default variant's K costliest cells")
+    parser.add_argument("--default-only", action="store_true",
+                        help="skip the fixed-n torch variant")
     args = parser.parse_args()
 
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
@@ -102,12 +121,19 @@ def main() -> None:
               f"{len(after.sigmas)} sigmas")
         print(f"{'variant':<34s} {'attacks':>9s} {'certificates':>13s} {'episodes':>9s} "
               f"{'frame total':>12s} {'per frame':>10s}")
-        for name, config in (("fixed n, torch (before)", before),
-                             (f"sequential, {after.backend} (default)", after)):
-            s = run_frames(config, args.positions, args.preset, designs, betas, conformal)
+        variants = [("fixed n, torch (before)", before)] * (not args.default_only)
+        for name, config in (*variants, (f"sequential, {after.backend} (default)", after)):
+            s, per_cell, worker = run_frames(config, args.positions, args.preset, designs,
+                                             betas, conformal)
             print(f"{name:<34s} {s['attacks']:8.1f}s {s['certificates']:12.1f}s "
                   f"{s['episodes']:8.1f}s {s['total']:11.1f}s "
                   f"{s['total'] / len(args.positions):9.1f}s")
+        if args.cells:
+            print(f"\nthe {args.cells} costliest cells of the default variant, CPU-s a frame:")
+            top = sorted(per_cell.items(), key=lambda kv: -kv[1])[:args.cells]
+            for (stage, cell), used in top:
+                rule = worker.decision_rule(args.preset, cell)
+                print(f"{used / len(args.positions):7.2f}  {stage:<12s} {cell}  {rule}")
 
 
 if __name__ == "__main__":
