@@ -263,6 +263,33 @@ def test_from_store_rewrites_the_same_tables_and_the_claims_without_computing(
     assert "holds no frame" in capsys.readouterr().err
 
 
+def test_the_tables_name_the_revision_the_run_started_from_not_one_its_writes_dirtied(
+        quick_local, tmp_path, monkeypatch):
+    """Writing results into a tracked folder (results/paper) changes tracked files (its run log,
+    its tables) before meta.json is written: the revision read then would be "-dirty" although
+    the run started on a clean checkout. meta.json names the revision of the start."""
+    import shutil
+
+    import drake_cert.io as io_module
+
+    copy = tmp_path / "copy"
+    shutil.copytree(quick_local, copy)
+    committed = (copy / "store" / "runs.json").read_text()
+    reads = []
+
+    def revision_dirtied_by_the_run_log():  # as git reads it: dirty once a tracked file changed
+        reads.append((copy / "store" / "runs.json").read_text() != committed)
+        return "abc1234-dirty" if reads[-1] else "abc1234"
+
+    monkeypatch.setattr(io_module, "git_revision", revision_dirtied_by_the_run_log)
+    assert main([*QUICK_ARGS, "--out", str(copy), "--from-store"]) == 0
+    assert reads[0] is False and reads[-1] is True  # read again after the run log changed
+    meta = json.loads((copy / "meta.json").read_text())
+    assert meta["written_by_revision"] == "abc1234"
+    assert json.loads((copy / "store" / "runs.json").read_text())[-1]["git_revision"] == \
+        "abc1234"
+
+
 @pytest.mark.slow  # ~60 s on 2 cores
 def test_conformal_calibrations_run_on_the_executor_and_resume_from_the_store(tmp_path):
     """g's conformal calibrations are executor tasks kept in the store: a rerun computes only

@@ -240,8 +240,10 @@ def _write_reproduction(args, config, out, store, designs, rows, started, wall, 
         started, wall_s=round(wall, 1), cpu_s=cpu, executor=args.executor,
         workers=args.workers if args.executor == "ray" else 1, frames_done=done))
     summary = tables.summarize(rows, config.eps, config.seed)
-    # The frames' revisions lead: the tables are theirs; this invocation only wrote them.
-    written_by = provenance(seed=config.seed)
+    # The frames' revisions lead: the tables are theirs; this invocation only wrote them. Its
+    # revision is the one it started from: by now it has written files that may be tracked
+    # (the run log, the store), which would read as "-dirty".
+    written_by = dict(provenance(seed=config.seed), git_revision=started["git_revision"])
     meta = dict(computed_by_revisions=store.revisions(tasks_for(config)),
                 written_by_revision=written_by.pop("git_revision"), **written_by,
                 wall_s=round(wall, 1),
