@@ -111,11 +111,10 @@ class PerceptionSettings:
         if self.quantization == "int8" and self.backend != "onnxruntime":
             raise ConfigError(f"{where}: perception.quantization = int8 needs backend "
                               "onnxruntime")
-        if self.decision == "sequential" and (self.task != "classify"
-                                              or self.interval != "safe_set"):
+        if self.decision == "sequential" and self.task != "classify":
             raise ConfigError(f"{where}: perception.decision = sequential needs task classify "
-                              "and interval safe_set (the regression and the robust conformal "
-                              "interval use the fixed-n certificate); use fixed or auto")
+                              "(a drive's regression interval uses the fixed-n certificate); "
+                              "use fixed or auto")
         _one_of(self.pipeline, PIPELINES, "perception.pipeline", where)
         _positive(self.sigma, "perception.sigma", where)
         _non_negative(self.base_sigma, "perception.base_sigma", where)

@@ -108,3 +108,22 @@ def test_a_speed_in_km_per_h_names_the_unit(tmp_path):
                                                     "implausibly large for a road vehicle's speed, "
                                                     "above 100 m/s (km/h? write 30)")):
         load_scenario(path)
+
+
+def test_sequential_decisions_are_named_for_either_classification_interval_not_for_regression():
+    """`decision: auto` decides the robust conformal set sequentially (DESIGN 3.6), so naming
+    `sequential` with it is the same drive, not an error; a drive's regression interval has no
+    sequential form and says so."""
+    import dataclasses
+
+    from drake_cert.systems.driving import with_overrides
+
+    shipped = load_scenario("dry_to_snow")
+    for interval in ("safe_set", "conformal"):
+        named = dataclasses.replace(shipped.perception, decision="sequential", interval=interval)
+        auto = dataclasses.replace(named, decision="auto")
+        named.validate("scenario")
+        assert named.resolved_decision == auto.resolved_decision == "sequential"
+    regress = dataclasses.replace(shipped.perception, decision="sequential", task="regress")
+    with pytest.raises(ConfigError, match="perception.decision = sequential needs task classify"):
+        with_overrides(dataclasses.replace(shipped, perception=regress))
