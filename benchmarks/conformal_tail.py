@@ -1,0 +1,74 @@
+"""The tail that sets the robust conformal thresholds: per true label, the calibration frames'
+smoothed vote share for their own label, and the thresholds q_l and t_l(eps) it gives at several
+alpha_c (DESIGN 3.6).
+
+With alpha_c = 0.008 and 150 frames a label, q_l is the smallest of the 150 scores, so one frame
+that g mostly misreads sets it; this prints how far the next frames are from it. Samples the
+shipped classifier on the drive's calibration split (torch, fp32, ``--threads``), one noise
+stream per frame from ``--seed``; nothing is cached or written.
+
+Run: ``.venv/bin/python benchmarks/conformal_tail.py [--preset robotcar-like] [--sigma 1]
+[--n 1000] [--frames-per-class 150] [--eps 1]`` (about 3 min for robotcar-like at n = 1000 on 2
+cores).
+"""
+
+import argparse
+import time
+
+import numpy as np
+import torch
+from scipy.stats import norm
+
+from drake_cert.certification.classifier import SmoothedClassifier
+from drake_cert.certification.conformal import BETA_CAL, lower_conformal_quantile
+from drake_cert.certification.sampler import make_generator
+from drake_cert.certification.statistics import clopper_pearson_one_sided
+from drake_cert.config import load_conditions
+from drake_cert.perception.datasets import load_split
+from drake_cert.perception.models import load_model
+
+ALPHA_CS = (0.008, 0.02, 0.05)
+
+
+def threshold_at(q: float, eps: float, sigma: float) -> float:
+    """``t(eps) = Phi(Phi^-1(q) - eps / sigma)`` (0 where q is 0: the label is always in)."""
+    return float(norm.cdf(norm.ppf(q) - eps / sigma)) if q > 0 else 0.0
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--preset", default="robotcar-like")
+    parser.add_argument("--sigma", type=float, default=1.0)
+    parser.add_argument("--n", type=int, default=1000, help="samples per calibration frame")
+    parser.add_argument("--frames-per-class", type=int, default=150)
+    parser.add_argument("--eps", type=float, default=1.0)
+    parser.add_argument("--threads", type=int, default=2)
+    parser.add_argument("--seed", type=int, default=1000)
+    args = parser.parse_args()
+    torch.set_num_threads(args.threads)
+    conditions = load_conditions()
+    names = [c.name for c in conditions.preset_conditions(args.preset)]
+    cal = load_split(args.preset, "calibration", conditions=conditions,
+                     frames_per_class=args.frames_per_class)
+    classifier = SmoothedClassifier(load_model(args.preset, "classify", args.sigma),
+                                    len(names), args.sigma)
+    start = time.perf_counter()
+    own = np.array([classifier.sample_counts(cal.images[i], args.n, 250,
+                                             make_generator(args.seed + i, classifier.device))
+                    [int(cal.labels[i])] for i in range(len(cal.labels))])
+    print(f"{args.preset}, sigma {args.sigma:g}, {len(cal.labels)} calibration frames, n = "
+          f"{args.n}, fp32 torch, {args.threads} thread(s): {time.perf_counter() - start:.0f} s")
+    for lab, name in enumerate(names):
+        k = own[cal.labels == lab]
+        shares = np.sort(k / args.n)
+        scores = clopper_pearson_one_sided(k, args.n, BETA_CAL)[0]
+        print(f"{name}: lowest own-label shares {np.round(shares[:6], 3).tolist()}; "
+              f"{int((shares < 0.5).sum())} of {len(shares)} under 0.5")
+        for alpha_c in ALPHA_CS:
+            q = lower_conformal_quantile(scores, alpha_c)
+            print(f"    alpha_c {alpha_c:<6g} q {q:.3f}  t(eps = {args.eps:g}) "
+                  f"{threshold_at(q, args.eps, args.sigma):.4f}")
+
+
+if __name__ == "__main__":
+    main()
