@@ -17,22 +17,19 @@ import time
 
 import numpy as np
 import torch
-from scipy.stats import norm
 
 from drake_cert.certification.classifier import SmoothedClassifier
-from drake_cert.certification.conformal import BETA_CAL, lower_conformal_quantile
+from drake_cert.certification.conformal import (
+    RobustConformalCalibration,
+    calibration_scores,
+    thresholds_from_scores,
+)
 from drake_cert.certification.sampler import make_generator
-from drake_cert.certification.statistics import clopper_pearson_one_sided
 from drake_cert.config import load_conditions
 from drake_cert.perception.datasets import load_split
 from drake_cert.perception.models import load_model
 
 ALPHA_CS = (0.008, 0.02, 0.05)
-
-
-def threshold_at(q: float, eps: float, sigma: float) -> float:
-    """``t(eps) = Phi(Phi^-1(q) - eps / sigma)`` (0 where q is 0: the label is always in)."""
-    return float(norm.cdf(norm.ppf(q) - eps / sigma)) if q > 0 else 0.0
 
 
 def main() -> None:
@@ -58,17 +55,19 @@ def main() -> None:
                     [int(cal.labels[i])] for i in range(len(cal.labels))])
     print(f"{args.preset}, sigma {args.sigma:g}, {len(cal.labels)} calibration frames, n = "
           f"{args.n}, fp32 torch, {args.threads} thread(s): {time.perf_counter() - start:.0f} s")
+    scores = calibration_scores(own, args.n)
+    calibrations = {}
+    for alpha_c in ALPHA_CS:
+        thresholds, sizes = thresholds_from_scores(scores, cal.labels, len(names), alpha_c)
+        calibrations[alpha_c] = RobustConformalCalibration(thresholds, sizes, len(names),
+                                                           args.sigma, args.n, alpha_c)
     for lab, name in enumerate(names):
-        k = own[cal.labels == lab]
-        shares = np.sort(k / args.n)
-        scores = clopper_pearson_one_sided(k, args.n, BETA_CAL)[0]
+        shares = np.sort(own[cal.labels == lab] / args.n)
         print(f"{name}: lowest own-label shares {np.round(shares[:6], 3).tolist()}; "
               f"{int((shares < 0.5).sum())} of {len(shares)} under 0.5")
-        for alpha_c in ALPHA_CS:
-            q = lower_conformal_quantile(scores, alpha_c)
-            print(f"    alpha_c {alpha_c:<6g} q {q:.3f}  t(eps = {args.eps:g}) "
-                  f"{threshold_at(q, args.eps, args.sigma):.4f}")
-
+        for alpha_c, calibration in calibrations.items():
+            print(f"    alpha_c {alpha_c:<6g} q {calibration.thresholds[lab]:.3f}  "
+                  f"t(eps = {args.eps:g}) {calibration.threshold(lab, args.eps):.4f}")
 
 if __name__ == "__main__":
     main()
