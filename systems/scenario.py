@@ -92,6 +92,7 @@ class PerceptionSettings:
     quantization: str = "none"  # "none" or "int8" (onnxruntime; the certificate is the int8 one)
     interval: str = "safe_set"  # classification interval: "safe_set" (paper) or "conformal"
     conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 124)
+    conformal_alpha_c: float = 0.008  # "conformal": miscoverage of the set (DESIGN 3.6)
 
     @property
     def resolved_decision(self) -> str:
@@ -128,7 +129,7 @@ class PerceptionSettings:
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)} must be a "
                                   "positive integer")
-        for key in ("alpha", "alpha_c", "alpha_m"):
+        for key in ("alpha", "alpha_c", "alpha_m", "conformal_alpha_c"):
             if not 0 < getattr(self, key) < 1:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)!r} must be "
                                   "in (0, 1)")

@@ -73,6 +73,16 @@ def test_outputs_are_what_the_sampler_expects(model, ort_fp32):
     assert ort_fp32.session.get_session_options().intra_op_num_threads == 1  # conftest's
 
 
+def test_ort_outputs_do_not_depend_on_the_thread_count(model, ort_fp32, noisy):
+    # The drive runs the session on every available core (DESIGN 3.8), the reproduction's
+    # workers on one: the votes, and so every certificate, must be the same bits.
+    two = evaluated_model(model, backend="onnxruntime", threads=2)
+    assert two.session.get_session_options().intra_op_num_threads == 2
+    with torch.inference_mode():
+        for batch in (noisy[:1], noisy[:7], noisy):
+            assert torch.equal(two(batch), ort_fp32(batch))
+
+
 def test_regressor_output_shape_is_kept():
     pytest.importorskip("onnxruntime")
     regressor = load_model("carla-like", "regress", SIGMA)
