@@ -176,13 +176,20 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
     return calib.beta
 
 
+CONFORMAL_CALIBRATION_SEED = 0  # noise root of the robust conformal calibration of seeded drives
+
+
 def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
                            progress: Callable | None = None, *, cache: bool = True):
     """The robust conformal calibration of the certified classifier (DESIGN 3): held-out
     calibration frames of every label, each with its own noise stream, at the run-time n;
-    ``model``: the module perception evaluates (calibrated as evaluated). Kept in the
-    calibration cache (:mod:`drake_cert.certification.calibration_cache`) unless ``cache`` is
-    False (a deployment's fresh noise)."""
+    ``model``: the module perception evaluates (calibrated as evaluated). The calibration is
+    the model's, not the drive's: drives with a seed share one, its noise rooted at
+    :data:`CONFORMAL_CALIBRATION_SEED` whatever the drive's seed, kept in the calibration cache
+    (:mod:`drake_cert.certification.calibration_cache`); with ``cache`` False (a deployment's
+    fresh noise) it is computed afresh from the drive's drawn seed. Each drive keeps its
+    coverage (marginal over the calibration and its own noise, which are independent; DESIGN
+    3.6); drives that share a calibration are not independent of each other."""
     from drake_cert.certification import conformal as rc
     from drake_cert.certification.backends import resolve_backend
     from drake_cert.certification.calibration_cache import cached
@@ -191,7 +198,8 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
     from drake_cert.perception.models import file_sha256, model_path
 
     p = scenario.perception
-    root = child_seed(scenario.seed, Purpose.CONFORMAL_CALIBRATION)
+    root = child_seed(CONFORMAL_CALIBRATION_SEED if cache else scenario.seed,
+                      Purpose.CONFORMAL_CALIBRATION)
 
     def compute() -> dict:
         cal = load_split(p.preset, "calibration", conditions=conditions,

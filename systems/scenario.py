@@ -90,9 +90,9 @@ class PerceptionSettings:
     decision: str = "auto"  # "sequential" (n: the most samples), "fixed"; auto: sequential if apt
     backend: str = "auto"  # "torch", "onnxruntime"; auto: onnxruntime if installed and fp32
     quantization: str = "none"  # "none" or "int8" (onnxruntime; the certificate is the int8 one)
-    interval: str = "safe_set"  # classification interval: "safe_set" (paper) or "conformal"
-    conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 124)
-    conformal_alpha_c: float = 0.008  # "conformal": miscoverage of the set (DESIGN 3.6)
+    interval: str = "conformal"  # classification interval: "conformal" (DESIGN 3.6) or "safe_set"
+    conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 19)
+    conformal_alpha_c: float = 0.05  # "conformal": miscoverage of the set per frame (DESIGN 3.6)
 
     @property
     def resolved_decision(self) -> str:
@@ -133,6 +133,15 @@ class PerceptionSettings:
             if not 0 < getattr(self, key) < 1:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)!r} must be "
                                   "in (0, 1)")
+        if self.task == "classify" and self.interval == "conformal" and \
+                self.pipeline == "certified":
+            need = math.ceil(1.0 / self.conformal_alpha_c - 1.0 - 1e-9)
+            if self.conformal_frames_per_class < need:
+                raise ConfigError(
+                    f"{where}: perception.conformal_frames_per_class = "
+                    f"{self.conformal_frames_per_class} is below the {need} calibration frames "
+                    f"per label that conformal_alpha_c = {self.conformal_alpha_c:g} needs (with "
+                    "fewer, every label is always in the set and every interval is the envelope)")
 
 
 @dataclasses.dataclass

@@ -27,26 +27,33 @@ def designs(tmp_path_factory, certified_design_table):
     return str(path)
 
 
-# every pipeline and attack on the first five; the two routes added for the combined
-# decisions (their full drives are slow tests in test_driving.py) certified with and without SA
-# and the base car under SA (the suite's time budget)
-DRIVE_CASES = ([(s, p, a) for s in SHIPPED_SCENARIOS[:5] for p in ("certified", "base")
-                for a in ("none", "sa", "ea")]
-               + [(s, p, a) for s in SHIPPED_SCENARIOS[5:]
+# every pipeline and attack on the first five, the certified car with the paper's safe-set
+# interval; the shipped default (the robust conformal interval, which calibrates first: at
+# most 100 samples a frame here, the suite's time budget) certified with and without SA on
+# dry_to_snow and on the two routes added for the combined decisions (their full drives, as
+# shipped, are slow tests in test_driving.py), and the base car under SA
+DRIVE_CASES = ([(s, p, a, "safe_set") for s in SHIPPED_SCENARIOS[:5]
+                for p in ("certified", "base") for a in ("none", "sa", "ea")]
+               + [(s, p, a, "conformal") for s in ("dry_to_snow", *SHIPPED_SCENARIOS[5:])
                   for p, a in (("certified", "none"), ("certified", "sa"), ("base", "sa"))])
 
 
-@pytest.mark.parametrize("scenario, pipeline, attack", DRIVE_CASES)
+@pytest.mark.parametrize("scenario, pipeline, attack, interval", DRIVE_CASES)
 def test_every_shipped_scenario_drives_under_every_attack(designs, scenario, pipeline, attack,
-                                                          capsys):
+                                                          interval, capsys):
+    budget = ["--n", "100"] if interval == "conformal" else []
     code = main(["drive", "--scenario", scenario, "--pipeline", pipeline, "--attack", attack,
-                 "--duration", "0.5", "--designs", designs, "--json"])
+                 "--duration", "0.5", "--designs", designs, "--json", "--interval", interval,
+                 *budget])
     assert code == 0
     summary = json.loads(capsys.readouterr().out)
     assert KEYS <= set(summary)
     assert summary["pipeline"] == pipeline and summary["attack"] == attack
     assert not summary["left_lane"]
     assert summary["vehicle"] == dataclasses.asdict(load_vehicle())  # the design file's
+    if pipeline == "certified":
+        assert summary["interval"] == interval
+        assert summary["standing_assumption"] is (interval == "safe_set")
 
 
 @pytest.mark.parametrize("argv, message", [
@@ -145,8 +152,10 @@ def test_a_sample_budget_that_can_never_certify_eps_is_refused_before_driving(de
     wide = tmp_path / "wide.yaml"  # eps/sigma = 3 needs thousands of unanimous samples
     wide.write_text(text.replace("\n  eps: 1.0  # L2 budget (pixel units) the run-time",
                                  "\n  eps: 3.0  # L2 budget (pixel units) the run-time"))
+    # (the safe-set interval's sequential decision; the conformal set at such a budget is the
+    # envelope without a sample, DESIGN 3.6)
     assert main(["drive", "--scenario", str(wide), "--duration", "0.3", "--designs",
-                 designs]) == 2
+                 designs, "--interval", "safe_set"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "can never certify" in err[0] and "n_max = 1000" in err[0]
 

@@ -41,8 +41,11 @@ def setup():
 
 
 def within_test_budget(scenario, n=300):
-    """The scenario with at most ``n`` samples per decision (the test budget)."""
-    return dataclasses.replace(scenario, perception=dataclasses.replace(scenario.perception, n=n))
+    """The scenario with at most ``n`` samples per decision and 20 conformal calibration frames
+    per label (the test budget; shipped: 1000 and 150; 20 is the least conformal_alpha_c = 0.05
+    allows)."""
+    return dataclasses.replace(scenario, perception=dataclasses.replace(
+        scenario.perception, n=n, conformal_frames_per_class=20))
 
 
 def snow_curve():
@@ -361,13 +364,13 @@ def test_the_guarantee_failure_bound_counts_every_frame_the_rule_uses():
         alpha_total = 0.01
 
     table = [Design(19.4), Design(16.0), Design(6.2)]
-    sc = load_scenario("dry_to_snow")
+    conformal = load_scenario("dry_to_snow")  # the shipped default interval
+    sc = dataclasses.replace(conformal, perception=dataclasses.replace(
+        conformal.perception, interval="safe_set"))
     safe = guarantee_summary(sc, table)
     assert safe["interval"] == "safe_set" and safe["standing_assumption"] is True
     assert safe["frame_miscoverage"] == 0.0 and safe["tolerated_wrong_frames"] == 1
     assert safe["guarantee_failure_bound"] == pytest.approx(sc.perception.alpha / 2)
-    conformal = dataclasses.replace(sc, perception=dataclasses.replace(
-        sc.perception, interval="conformal"))
     g = guarantee_summary(conformal, table, Calibration())
     assert g["standing_assumption"] is False and g["interval"] == "conformal"
     planned = g["planned_ticks"]

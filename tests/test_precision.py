@@ -90,7 +90,7 @@ def test_a_drive_and_a_certify_run_report_the_precision_they_used(monkeypatch, t
     monkeypatch.delenv(sampler.PRECISION_ENV, raising=False)
     monkeypatch.setattr(sampler, "bf16_supported", lambda: False)  # only the probe is mocked
     assert main(["drive", "--scenario", "dry_to_snow", "--duration", "0.4", "--json",
-                 "--out", str(tmp_path / "tape.csv")]) == 0
+                 "--n", "100", "--out", str(tmp_path / "tape.csv")]) == 0  # n: test budget
     summary = json.loads(capsys.readouterr().out)
     assert summary["precision"] == "fp32" and summary["decision"] == "sequential"
     stored = [line for line in (tmp_path / "tape.csv").read_text().splitlines()
