@@ -58,8 +58,10 @@ def main() -> int:
     from drake_cert.config import load_conditions, load_settings, load_vehicle
     from drake_cert.io import atomic_write_text
     from drake_cert.synthesis.table import synthesize_table
+    from drake_cert.systems.scenario import load_scenario
 
     seeds = seed_range(args.seeds)
+    interval = load_scenario(args.scenario).perception.interval
     start = time.perf_counter()
     designs = synthesize_table(load_vehicle(), load_conditions(), load_settings())
     jobs = [(args.scenario, p, s, designs) for s in seeds for p in ("certified", "base")]
@@ -79,7 +81,8 @@ def main() -> int:
     unprotected = sum(1 for r in rows if (r["certified_time_unprotected_s"] or 0.0) > 0.0)
     wall = time.perf_counter() - start
     summary = (f"{args.scenario}, stability attack at the scenario's budget, seeds "
-               f"{seeds[0]}-{seeds[-1]} ({len(seeds)}), shipped vehicle and settings, fp32: the "
+               f"{seeds[0]}-{seeds[-1]} ({len(seeds)}), shipped vehicle and settings (the "
+               f"certified car's interval: {interval}), fp32: the "
                f"base car left its lane in {base} of {len(seeds)} drives, the certified car in "
                f"{certified} of {len(seeds)} (time unprotected > 0 in {unprotected}); "
                f"{wall:.0f} s wall on {os.cpu_count()} cores")
