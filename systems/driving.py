@@ -176,20 +176,21 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
     return calib.beta
 
 
-CONFORMAL_CALIBRATION_SEED = 0  # noise root of the robust conformal calibration of seeded drives
+CONFORMAL_CALIBRATION_SEED = 0  # noise root of the robust conformal calibration of every drive
 
 
 def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
-                           progress: Callable | None = None, *, cache: bool = True):
+                           progress: Callable | None = None):
     """The robust conformal calibration of the certified classifier (DESIGN 3): held-out
     calibration frames of every label, each with its own noise stream, at the run-time n;
     ``model``: the module perception evaluates (calibrated as evaluated). The calibration is
-    the model's, not the drive's: drives with a seed share one, its noise rooted at
-    :data:`CONFORMAL_CALIBRATION_SEED` whatever the drive's seed, kept in the calibration cache
-    (:mod:`drake_cert.certification.calibration_cache`); with ``cache`` False (a deployment's
-    fresh noise) it is computed afresh from the drive's drawn seed. Each drive keeps its
-    coverage (marginal over the calibration and its own noise, which are independent; DESIGN
-    3.6); drives that share a calibration are not independent of each other."""
+    the model's, not the drive's: every drive shares one, its noise rooted at
+    :data:`CONFORMAL_CALIBRATION_SEED` whatever the drive's seed (a drive with fresh noise
+    too: the attacker may know the calibration, only the test noise must be fresh, and the drive
+    stays replayable from its recorded seed), kept in the calibration cache
+    (:mod:`drake_cert.certification.calibration_cache`). Each drive keeps its coverage
+    (marginal over the calibration and its own noise, which are independent; DESIGN 3.6);
+    drives that share a calibration are not independent of each other."""
     from drake_cert.certification import conformal as rc
     from drake_cert.certification.backends import resolve_backend
     from drake_cert.certification.calibration_cache import cached
@@ -198,8 +199,7 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
     from drake_cert.perception.models import file_sha256, model_path
 
     p = scenario.perception
-    root = child_seed(CONFORMAL_CALIBRATION_SEED if cache else scenario.seed,
-                      Purpose.CONFORMAL_CALIBRATION)
+    root = child_seed(CONFORMAL_CALIBRATION_SEED, Purpose.CONFORMAL_CALIBRATION)
 
     def compute() -> dict:
         cal = load_split(p.preset, "calibration", conditions=conditions,
@@ -211,8 +211,6 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
                                              alpha_c=p.conformal_alpha_c,
                                              root_seed=root).to_json()
 
-    if not cache:
-        return rc.RobustConformalCalibration.from_json(compute())
     precision = resolve_precision(p.precision)
     key = {"model_sha256": file_sha256(model_path(p.preset, p.task, p.sigma)),
            "backend": resolve_backend(p.backend, precision), "precision": precision,
@@ -574,8 +572,7 @@ def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Setting
     evaluated = _evaluated_model(model, scenario, conditions, sigma)
     beta = _regression_beta(evaluated, scenario, conditions) \
         if certified and p.task == "regress" else math.inf
-    conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress,
-                                       cache=seed_source == "scenario") \
+    conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress) \
         if certified and p.task == "classify" and p.interval == "conformal" else None
     return _DriveParts(
         scenario=scenario, vehicle=vehicle, settings=settings, tires=tires, table=table,

@@ -133,6 +133,20 @@ def test_the_same_seed_gives_the_same_summary(setup):
     assert other["seed"] != first["seed"]
 
 
+def test_every_drive_shares_one_conformal_calibration_whatever_its_seed(setup):
+    # The calibration is the model's (DESIGN 3.6): another seed, or fresh noise from the OS,
+    # drives with the same thresholds, so a seed study calibrates once and a fresh-noise drive
+    # replays exactly from the seed it records.
+    scenario = short(snow_curve(), 0.2)
+    assert scenario.perception.interval == "conformal"  # the shipped default
+    built = [build_certified_driving_diagram(dataclasses.replace(scenario, seed=seed), **setup)
+             for seed in (1, 7, None)]  # None: fresh noise from the OS
+    assert built[2].seed_source == "os-entropy"
+    calibrations = [b.systems["perception"].conformal for b in built]
+    assert calibrations[0] is not None
+    assert calibrations[1] == calibrations[0] and calibrations[2] == calibrations[0]
+
+
 def test_an_abstention_shows_the_envelope_at_once_and_the_dwell_adds_held_ticks(under_sa):
     """A tick whose own decision is the envelope (abstained) has the envelope in force at its
     look point at once (a widening); the dwell time may hold the envelope a little longer, so
