@@ -83,6 +83,11 @@ def test_unknown_keys_raise_config_error_naming_the_key(tmp_path, edit, key):
     (lambda d: d["camera"].update(rate_hz=0.0), "camera.rate_hz"),
     (lambda d: d["route"][0].update(curvature_per_m=0.1), "route[0].curvature_per_m"),
     (lambda d: d.update(seed=-1), "seed"),
+    (lambda d: d["perception"].update(conformal_alpha_c=1.5), "perception.conformal_alpha_c"),
+    # 18 calibration frames a label cannot give alpha_c = 0.05 a threshold (19 can): every
+    # conformal set would be every label
+    (lambda d: d["perception"].update(conformal_frames_per_class=18),
+     "perception.conformal_frames_per_class = 18 is below the 19"),
 ])
 def test_missing_keys_and_bad_values_raise_config_error(tmp_path, edit, key):
     with pytest.raises(ConfigError, match=re.escape(key)):
