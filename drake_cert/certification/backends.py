@@ -116,9 +116,9 @@ class OnnxRuntimeModel(torch.nn.Module):
     ``InferenceSession`` (CPUExecutionProvider, all graph optimisations, ``threads``
     intra-op threads, default ``torch.get_num_threads()`` at construction, that do not spin
     while waiting for work, one inter-op thread). The outputs do not depend on ``threads``
-    (measured bit for bit at 1, 2 and 4 on the shipped models; tested). H = W =
-    ``model.meta["image_size"]`` when the model records it, else ``frame_size`` (pixels); other
-    sizes are rejected by the session.
+    (measured bit for bit at 1, 2 and 4 on the robotcar-like sigma-1 classifier; tested on
+    carla-like). H = W = ``model.meta["image_size"]`` when the model records it, else
+    ``frame_size`` (pixels); other sizes are rejected by the session.
 
     Not differentiable, and a snapshot: later changes to the torch model's weights are not
     seen. ``torch_model`` is the surrogate a gradient attack must use. In float32 the two agree
