@@ -135,7 +135,9 @@ class PerceptionSettings:
                                   "in (0, 1)")
         if self.task == "classify" and self.interval == "conformal" and \
                 self.pipeline == "certified":
-            need = math.ceil(1.0 / self.conformal_alpha_c - 1.0 - 1e-9)
+            from drake_cert.certification.conformal import min_frames_per_label
+
+            need = min_frames_per_label(self.conformal_alpha_c)
             if self.conformal_frames_per_class < need:
                 raise ConfigError(
                     f"{where}: perception.conformal_frames_per_class = "

@@ -24,6 +24,7 @@ from drake_cert.certification.conformal import (
     conformal_looks,
     labels_that_stay,
     lower_conformal_quantile,
+    min_frames_per_label,
     sequential_label_set,
 )
 from drake_cert.certification.intervals import runtime_classification_interval
@@ -232,3 +233,10 @@ def test_conformal_looks_double_up_to_the_most_samples():
     assert conformal_looks(64) == (64,) and conformal_looks(50) == (50,)
     with pytest.raises(CertificationError):
         conformal_looks(0)
+
+
+@pytest.mark.parametrize("alpha_c, frames", [(0.05, 19), (0.02, 49), (0.01, 99), (0.008, 124)])
+def test_a_label_needs_one_over_alpha_c_minus_one_frames_for_a_threshold(alpha_c, frames):
+    assert min_frames_per_label(alpha_c) == frames
+    assert lower_conformal_quantile(np.full(frames, 0.5), alpha_c) == 0.5
+    assert lower_conformal_quantile(np.full(frames - 1, 0.5), alpha_c) == 0.0

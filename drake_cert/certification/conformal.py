@@ -60,6 +60,17 @@ def lower_conformal_quantile(scores: np.ndarray, alpha_c: float) -> float:
     return float(s[j - 1]) if j >= 1 else 0.0
 
 
+def min_frames_per_label(alpha_c: float) -> int:
+    """The fewest calibration frames m of a label for which :func:`lower_conformal_quantile`
+    gives a threshold (``floor(alpha_c (m + 1)) >= 1``); with fewer the label is always in the
+    set (19 at alpha_c = 0.05, 124 at 0.008)."""
+    check_alpha(alpha_c, "alpha_c")
+    m = max(0, math.ceil(1.0 / alpha_c) - 2)
+    while math.floor(alpha_c * (m + 1)) < 1:
+        m += 1
+    return m
+
+
 @dataclasses.dataclass(frozen=True)
 class RobustConformalCalibration:
     """Per-label thresholds ``q_l`` of the robust conformal label set (see module doc)."""
