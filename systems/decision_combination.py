@@ -1,4 +1,5 @@
-"""Combined decisions that a few wrong frames cannot turn against the truth (DESIGN 6.3).
+"""Combined decisions that a few wrong frames cannot turn against the truth (docs/design.md
+6.3).
 
 Pure functions on label spans, used by the longitudinal block's speed profile
 (:meth:`drake_cert.systems.longitudinal.SpeedProfile.with_combined_decision`).
@@ -6,35 +7,38 @@ Pure functions on label spans, used by the longitudinal block's speed profile
 Vocabulary. Labels are numbered in the preset's friction order; a decision's label range is a
 *span* ``(lo, hi)`` of label numbers (contiguous); the whole family ``(0, K - 1)`` is the
 envelope (an abstention, a bad frame). A *look* is ``(position_m, span)``: the decision of one
-frame about the road condition at its look point. A frame is *right* when the condition at its
-look point lies in its span; an abstention is always right.
+camera tick about the road condition at its look point. A look *supports* every label of its
+span; it is *right* when the condition at its look point lies in its span (an abstention is
+always right).
 
 World assumption: no interior stretch of one road condition is as short as ``window_m``
 (the scenario's ``min_condition_length_m``, checked against the route before driving).
 
-Rule (:func:`tolerant_span`). For the road between two consecutive look points, take the
-informative looks (span narrower than the envelope) at or before its start (``left``) and at or
-after its end (``right``), up to :data:`PER_SIDE` on each side, the nearest first; a *pair* is one
-look of each side less than ``window_m`` apart. For a set E of looks, ``M_E`` is the
-intersection of the hulls of the pairs that avoid E (the envelope if no pair does). The stretch
-gets the hull of every non-empty ``M_E`` over the sets E of at most ``tolerance`` looks; the
-envelope when all are empty (more than ``tolerance`` looks are wrong: the frames contradict
-each other beyond what the rule tolerates).
+Counting rule (:func:`counted_span`). The road between two consecutive look points
+``start < end`` (gap g) is bounded by two *sides*: the ticks whose look point lies at or before
+``start`` and less than ``(window_m - g) / 2`` behind it (the nearest first), and those at or
+after ``end`` and less than ``(window_m - g) / 2`` beyond it (the nearest first), at most
+``looks_per_side`` each, abstentions included. Every look of both sides and the stretch then
+lie in less than ``window_m`` of road, so at most one condition boundary among them. A side of
+q looks keeps the labels that at least ``q - tolerance`` of its looks support; the stretch gets
+the hull of the labels either side keeps (the envelope if neither keeps any: the looks
+contradict each other beyond the tolerance).
 
-Guarantee: if at most ``tolerance`` of the looks used are wrong, the condition at every point
-of the stretch lies in its span; as newer looks arrive a stretch's span only narrows or stays,
-except for the envelope of a detected contradiction. Proofs: DESIGN 6.3.
+Guarantee: if neither side holds more than ``tolerance`` wrong looks, the condition at every
+point of the stretch lies in its span. A side is a run of consecutive camera ticks, so the
+drive's failure event is "some run of ``looks_per_side`` consecutive ticks holds more than
+``tolerance`` wrong looks" (:func:`run_failure_bound`). As newer looks arrive a stretch's span
+only narrows or stays. Proofs: docs/design.md 6.3.
 """
 
 from __future__ import annotations
 
-import itertools
 from collections.abc import Sequence
 
 Span = tuple[int, int]
 Look = tuple[float, Span]
 
-PER_SIDE = 4  # informative looks used on each side of a stretch (the nearest)
+LOOKS_PER_SIDE = 20  # default most looks a side (the scenario's looks_per_side)
 
 
 def hull(a: Span, b: Span) -> Span:
@@ -47,51 +51,47 @@ def is_within(inner: Span, outer: Span) -> bool:
     return outer[0] <= inner[0] and inner[1] <= outer[1]
 
 
-def tolerant_span(left: Sequence[Look], right: Sequence[Look], *, window_m: float,
-                  tolerance: int, full: Span) -> Span:
-    """The span of the road between the last look of ``left`` and the first of ``right``
-    (module docstring): it holds the condition there whenever at most ``tolerance`` of the
-    looks it uses are wrong.
+def side_keeps(side: Sequence[Look], *, tolerance: int, full: Span) -> set[int]:
+    """The labels that at least ``len(side) - tolerance`` of the side's looks support (every
+    label when the side has at most ``tolerance`` looks)."""
+    need = len(side) - tolerance
+    return {lab for lab in range(full[0], full[1] + 1)
+            if sum(1 for _, (lo, hi) in side if lo <= lab <= hi) >= need}
 
-    ``left``: looks at or before the stretch, ``right``: at or after it, each the nearest
-    first; abstentions (span ``full``) are skipped, at most :data:`PER_SIDE` informative looks a
-    side are used. ``full``: the envelope's span ``(0, K - 1)``.
-    """
-    a_side = [lk for lk in left if lk[1] != full][:PER_SIDE]
-    b_side = [lk for lk in right if lk[1] != full][:PER_SIDE]
-    pairs = [(i, len(a_side) + j, hull(a[1], b[1]))
-             for i, a in enumerate(a_side) for j, b in enumerate(b_side)
-             if b[0] - a[0] < window_m]
-    used = sorted({p[0] for p in pairs} | {p[1] for p in pairs})
-    lo, hi, found = full[1] + 1, full[0] - 1, False
-    for size in range(min(tolerance, len(used)) + 1):
-        for removed in itertools.combinations(used, size):
-            m_lo, m_hi = full
-            for i, j, (h_lo, h_hi) in pairs:
-                if i not in removed and j not in removed:
-                    m_lo, m_hi = max(m_lo, h_lo), min(m_hi, h_hi)
-            if m_lo <= m_hi:  # M_E is not empty: E may be the set of wrong looks
-                lo, hi, found = min(lo, m_lo), max(hi, m_hi), True
-    return (lo, hi) if found else full
+
+def counted_span(left: Sequence[Look], right: Sequence[Look], *, tolerance: int,
+                 full: Span) -> Span:
+    """The span of the road between the looks of ``left`` (at or before it) and ``right`` (at
+    or after it), each side already cut to its window and ``looks_per_side`` (module
+    docstring): the hull of the labels either side keeps, the envelope if none is kept. It
+    holds the condition there whenever neither side holds more than ``tolerance`` wrong
+    looks."""
+    kept = side_keeps(left, tolerance=tolerance, full=full) | \
+        side_keeps(right, tolerance=tolerance, full=full)
+    return (min(kept), max(kept)) if kept else full
 
 
 def stretch_spans(looks: Sequence[Look], *, window_m: float, tolerance: int, full: Span,
+                  looks_per_side: int = LOOKS_PER_SIDE,
                   first: int = 0) -> list[tuple[float, Span]]:
     """``(start_m, span)`` of the road from each distinct look point (from the ``first``-th
-    distinct one on) to the next, by :func:`tolerant_span`; the road from the last look point
-    on, which no later frame has bounded, gets the envelope when ``tolerance`` > 0 (one frame
-    alone narrows nothing) and the last look's span at that point with tolerance 0.
+    distinct one on) to the next, by :func:`counted_span` over the sides of the module
+    docstring; the road from the last look point on, which no later frame has bounded, gets the
+    envelope when ``tolerance`` > 0 and the last look's span at that point with tolerance 0.
 
-    ``looks`` sorted by position (ties: frames of one look point, the car at rest).
+    ``looks`` sorted by position, ties in time order (frames of one look point, the car at
+    rest), so that each side is a run of consecutive ticks.
     """
     positions = sorted({lk[0] for lk in looks})
     out = []
     for k in range(max(first, 0), len(positions) - 1):
         start, end = positions[k], positions[k + 1]
-        left = [lk for lk in reversed(looks) if lk[0] <= start]
-        right = [lk for lk in looks if lk[0] >= end]
-        out.append((start, tolerant_span(left, right, window_m=window_m, tolerance=tolerance,
-                                         full=full)))
+        half = 0.5 * (window_m - (end - start))
+        left = [lk for lk in reversed(looks) if start - half < lk[0] <= start][:looks_per_side]
+        right = [lk for lk in looks if end <= lk[0] < end + half][:looks_per_side]
+        span = counted_span(left, right, tolerance=tolerance, full=full) \
+            if half > 0 and left and right else full
+        out.append((start, span))
     if positions and len(positions) - 1 >= first:
         last = positions[-1]
         at_last = [lk[1] for lk in looks if lk[0] == last]
@@ -101,3 +101,16 @@ def stretch_spans(looks: Sequence[Look], *, window_m: float, tolerance: int, ful
             span = span if span[0] <= span[1] else full
         out.append((last, span))
     return out
+
+
+def run_failure_bound(miss_per_look: float, looks_per_side: int, tolerance: int) -> float:
+    """``P(Bin(looks_per_side, miss_per_look) > tolerance)``: for any run of
+    ``looks_per_side`` consecutive camera ticks, a bound on the probability that more than
+    ``tolerance`` of them are wrong, when each tick is wrong with probability at most
+    ``miss_per_look`` given everything before it (docs/design.md 6.2: the coupling argument;
+    which ticks the car takes, and where they look, may depend on its earlier decisions)."""
+    from scipy.stats import binom
+
+    if not 0.0 <= miss_per_look <= 1.0:
+        raise ValueError(f"miss_per_look = {miss_per_look!r} must be in [0, 1]")
+    return float(binom.sf(int(tolerance), int(looks_per_side), float(miss_per_look)))

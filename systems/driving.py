@@ -179,48 +179,74 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
 CONFORMAL_CALIBRATION_SEED = 0  # noise root of the robust conformal calibration of every drive
 
 
-def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
-                           progress: Callable | None = None):
-    """The robust conformal calibration of the certified classifier (DESIGN 3): held-out
-    calibration frames of every label, each with its own noise stream, at the run-time n;
-    ``model``: the module perception evaluates (calibrated as evaluated). The calibration is
-    the model's, not the drive's: every drive shares one, its noise rooted at
-    :data:`CONFORMAL_CALIBRATION_SEED` whatever the drive's seed (a drive with fresh noise
-    too: the attacker may know the calibration, only the test noise must be fresh, and the drive
-    stays replayable from its recorded seed), kept in the calibration cache
-    (:mod:`drake_cert.certification.calibration_cache`). Each drive keeps its coverage
-    (marginal over the calibration and its own noise, which are independent; DESIGN 3.6);
-    drives that share a calibration are not independent of each other."""
-    from drake_cert.certification import conformal as rc
-    from drake_cert.certification.backends import resolve_backend
-    from drake_cert.certification.calibration_cache import cached
-    from drake_cert.certification.classifier import SmoothedClassifier
-    from drake_cert.perception.datasets import load_split
+def conformal_votes_spec(scenario: Scenario, conditions: ConditionsTable):
+    """The :class:`~drake_cert.certification.shipped_calibration.VotesSpec` of the scenario's
+    robust conformal calibration: the model file's digest, the backend and precision as
+    resolved on this machine, the scenario's calibration frames and samples, and the noise root
+    :data:`CONFORMAL_CALIBRATION_SEED` (the calibration is the model's, not the drive's)."""
+    from drake_cert.certification.shipped_calibration import VotesSpec
     from drake_cert.perception.models import file_sha256, model_path
 
     p = scenario.perception
-    root = child_seed(CONFORMAL_CALIBRATION_SEED, Purpose.CONFORMAL_CALIBRATION)
-
-    def compute() -> dict:
-        cal = load_split(p.preset, "calibration", conditions=conditions,
-                         frames_per_class=p.conformal_frames_per_class)
-        classifier = SmoothedClassifier(model, len(conditions.preset(p.preset).labels),
-                                        p.sigma)
-        return rc.calibrate_robust_conformal(classifier, cal.images, cal.labels.tolist(),
-                                             n=p.n, batch_size=p.batch_size, progress=progress,
-                                             alpha_c=p.conformal_alpha_c,
-                                             root_seed=root).to_json()
-
     precision = resolve_precision(p.precision)
-    key = {"model_sha256": file_sha256(model_path(p.preset, p.task, p.sigma)),
-           "backend": resolve_backend(p.backend, precision), "precision": precision,
-           "quantization": p.quantization, "preset": p.preset, "sigma": p.sigma, "n": p.n,
-           "batch_size": p.batch_size, "frames_per_class": p.conformal_frames_per_class,
-           "root_seed": root, "alpha_c": p.conformal_alpha_c, "beta_cal": rc.BETA_CAL,
-           "beta_test": rc.BETA_TEST,
-           "conditions": [[c.name, *map(float, c.interval)]
-                          for c in conditions.preset_conditions(p.preset)]}
-    return rc.RobustConformalCalibration.from_json(cached("robust_conformal", key, compute))
+    return VotesSpec(
+        preset=p.preset, sigma=float(p.sigma),
+        model_sha256=file_sha256(model_path(p.preset, p.task, p.sigma)),
+        backend=resolve_backend(p.backend, precision), precision=precision,
+        quantization=p.quantization, frames_per_label=int(p.conformal_frames_per_class),
+        n=int(p.conformal_calibration_n),
+        root_seed=child_seed(CONFORMAL_CALIBRATION_SEED, Purpose.CONFORMAL_CALIBRATION),
+        batch_size=int(p.batch_size),
+        conditions=tuple((c.name, float(c.interval[0]), float(c.interval[1]))
+                         for c in conditions.preset_conditions(p.preset)))
+
+
+def conformal_votes(model, scenario: Scenario, conditions: ConditionsTable,
+                    progress: Callable | None = None):
+    """The calibration frames' true-label votes for the scenario's robust conformal
+    calibration: shipped beside the model when the spec matches, else cached, else drawn
+    (``progress`` wraps the frames); ``model``: the module perception evaluates (calibrated as
+    evaluated: ONNX Runtime, int8, bf16)."""
+    from drake_cert.certification import conformal as rc
+    from drake_cert.certification.classifier import SmoothedClassifier
+    from drake_cert.certification.shipped_calibration import CalibrationVotes, calibration_votes
+    from drake_cert.perception.datasets import load_split
+    from drake_cert.perception.models import model_path
+
+    p = scenario.perception
+    spec = conformal_votes_spec(scenario, conditions)
+
+    def compute(progress_of):
+        cal = load_split(p.preset, "calibration", conditions=conditions,
+                         frames_per_class=spec.frames_per_label)
+        classifier = SmoothedClassifier(model, len(spec.conditions), p.sigma)
+        counts = rc.true_label_counts(classifier, cal.images, cal.labels.tolist(), n=spec.n,
+                                      batch_size=spec.batch_size, root_seed=spec.root_seed,
+                                      progress=progress_of)
+        return CalibrationVotes(spec, cal.labels.numpy().astype(np.int64),
+                                cal.stiffness_n_per_rad.numpy().astype(np.float64), counts)
+
+    return calibration_votes(spec, model_path(p.preset, p.task, p.sigma), compute, progress)
+
+
+def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
+                           progress: Callable | None = None):
+    """The robust conformal calibration of the certified classifier (docs/design.md 3.6):
+    calibration-conditional (``perception.conformal_delta_cal``) and bounded in each of
+    ``perception.conformal_bins_per_label`` stiffness bins of every label at
+    ``perception.conformal_alpha_c``, from :func:`conformal_votes` (shipped with the model).
+    Every drive shares it, whatever its seed (a drive with fresh noise too: the attacker may
+    know the calibration, only the test noise must be fresh); the drive's guarantee holds for
+    every calibration outside an event of probability delta_cal."""
+    from drake_cert.certification import conformal as rc
+
+    p = scenario.perception
+    votes = conformal_votes(model, scenario, conditions, progress)
+    intervals = [(c[1], c[2]) for c in votes.spec.conditions]
+    return rc.pac_calibration_from_counts(
+        votes.true_counts, votes.labels, votes.stiffness_n_per_rad, intervals, n=votes.spec.n,
+        sigma=p.sigma, bins=p.conformal_bins_per_label, miss_target=p.conformal_alpha_c,
+        delta_cal=p.conformal_delta_cal, label_names=[c[0] for c in votes.spec.conditions])
 
 
 def _calibration_warnings(scenario: Scenario, regression_beta: float) -> list[str]:
@@ -399,32 +425,45 @@ def frame_miscoverage(scenario: Scenario, conformal=None) -> float:
     return 0.0
 
 
-def guarantee_failure_bound(scenario: Scenario, planned: int,
-                            miscoverage: float) -> float | None:
+def guarantee_failure_bound(scenario: Scenario, planned: int, miscoverage: float,
+                            conformal=None) -> float | None:
     """Bound, computed before the drive from its ``planned`` ticks, on the probability that
     somewhere on the route the design in force misses the stiffness under the car or the car
-    is faster than its safe speed (DESIGN 6.2): the combined decisions keep the truth unless
-    more than ``j = tolerated_wrong_frames`` frames are wrong, and the expected number of wrong
-    frames is at most the certificates' alpha (spent over the drive, or ``planned * alpha``)
-    plus ``planned * miscoverage``; Markov's inequality gives
-    ``P(more than j wrong) <= E[wrong] / (j + 1)`` (no independence assumed), capped at 1.
-    For a drive longer than the plan, the certificates stay covered by the spending's tail;
-    each extra frame adds its ``miscoverage``. None for the base pipeline (no guarantee). The
-    safe-set interval's bound holds under its standing assumption."""
+    is faster than its safe speed (docs/design.md 6.2). None for the base pipeline.
+
+    Robust conformal interval with a calibration-conditional ``conformal`` calibration
+    (``delta_cal`` > 0): ``delta_cal + R P(Bin(m, p) > j)``, p = ``miscoverage`` the per-tick
+    miss bound that holds in every stiffness bin given a good calibration, m =
+    ``looks_per_side``, j = ``tolerated_wrong_frames``, R = max(1, planned - m + 1) runs of m
+    consecutive ticks: the counting rule keeps the truth unless some side, a run of at most m
+    consecutive ticks, holds more than j wrong looks (6.3), and given the calibration each
+    tick is wrong with probability at most p whatever came before (6.2).
+
+    Otherwise (the safe-set interval, under its standing assumption; the regression interval;
+    a marginal calibration), Markov's inequality on the expected number of wrong frames,
+    ``min(1, (A + planned miscoverage) / (j + 1))``, A the certificates' alpha."""
+    from drake_cert.systems.decision_combination import run_failure_bound
+
     p = scenario.perception
     if p.pipeline != "certified":
         return None
+    m, j = scenario.looks_per_side, scenario.tolerated_wrong_frames
+    if conformal is not None and getattr(conformal, "delta_cal", 0.0) > 0.0 \
+            and p.task == "classify" and p.interval == "conformal":
+        runs = max(1, planned - m + 1)
+        return min(1.0, conformal.delta_cal + runs * run_failure_bound(miscoverage, m, j))
     certificates = p.alpha if p.alpha_scope == "drive" else planned * p.alpha
     expected_wrong = certificates + planned * miscoverage
-    return min(1.0, expected_wrong / (scenario.tolerated_wrong_frames + 1))
+    return min(1.0, expected_wrong / (j + 1))
 
 
 def guarantee_summary(scenario: Scenario, table: list[ControllerDesign],
                       conformal=None) -> dict:
     """The drive summary's account of what its guarantee rests on: ``interval``,
     ``standing_assumption`` (true where the guarantee assumes the smoothed classifier right on
-    the clean frame: the safe-set interval), ``tolerated_wrong_frames``, ``planned_ticks``,
-    ``frame_miscoverage`` and ``guarantee_failure_bound``."""
+    the clean frame: the safe-set interval), ``tolerated_wrong_frames``, ``looks_per_side``,
+    ``planned_ticks``, ``frame_miscoverage`` (per tick, in every stiffness bin given the
+    calibration), ``calibration_failure_bound`` (delta_cal) and ``guarantee_failure_bound``."""
     p = scenario.perception
     certified = p.pipeline == "certified"
     planned = planned_ticks(scenario, table)
@@ -434,9 +473,12 @@ def guarantee_summary(scenario: Scenario, table: list[ControllerDesign],
                      if certified else "base"),
         "standing_assumption": certified and p.task == "classify" and p.interval == "safe_set",
         "tolerated_wrong_frames": scenario.tolerated_wrong_frames if certified else 0,
+        "looks_per_side": scenario.looks_per_side if certified else 0,
         "planned_ticks": planned,
         "frame_miscoverage": miss,
-        "guarantee_failure_bound": (guarantee_failure_bound(scenario, planned, miss)
+        "calibration_failure_bound": (float(getattr(conformal, "delta_cal", 0.0))
+                                      if certified and conformal is not None else None),
+        "guarantee_failure_bound": (guarantee_failure_bound(scenario, planned, miss, conformal)
                                     if certified else None),
     }
 
@@ -622,7 +664,8 @@ def _add_motion(b: DiagramBuilder, parts: _DriveParts) -> dict:
             # stretch of one condition; the base pipeline's raw predictions each stand alone
             spans=design_label_spans(table, tires, p.preset) if parts.certified else None,
             window_m=scenario.min_condition_length_m if parts.certified else 0.0,
-            tolerance=scenario.tolerated_wrong_frames, envelope_index=parts.envelope),
+            tolerance=scenario.tolerated_wrong_frames, looks_per_side=scenario.looks_per_side,
+            envelope_index=parts.envelope),
         initial_design_index=parts.envelope, initial_arc_length_m=-cam.look_ahead_m))
     road = add("route", RouteSource(parts.route, preview_ahead_s=ctl.preview_ahead_s,
                                     preview_window_s=ctl.preview_window_s))

@@ -16,9 +16,9 @@ dropped but the one in force, an entry equal to its predecessor is not added, a 
 previous look point q to this one gets the join of the two designs, and a decision at p
 supersedes the entries at positions >= p. Decisions combined (``spans`` and ``window_m`` > 0):
 the stretches within the window behind a new look get the span of
-:func:`drake_cert.systems.decision_combination.tolerant_span`, sound while at most
-``tolerance`` of the frames used are wrong; past the newest look: the envelope (tolerance 0:
-the newest decision's design).
+:func:`drake_cert.systems.decision_combination.counted_span`, sound while neither side of a
+stretch holds more than ``tolerance`` wrong looks; past the newest look: the envelope
+(tolerance 0: the newest decision's design).
 
 Speed reference (a = ``envelope_decel_fraction`` a_dec, m = ``braking_margin_m``, f the
 frontier, v_f = ``frontier_speed_mps``):
@@ -40,7 +40,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import Demultiplexer, SymbolicVectorSystem
 
 from drake_cert.errors import ConfigError
-from drake_cert.systems.decision_combination import is_within, stretch_spans
+from drake_cert.systems.decision_combination import LOOKS_PER_SIDE, is_within, stretch_spans
 from drake_cert.systems.scenario import CameraSettings, MotionSettings
 
 STOP_SPEED_MPS = 5.0  # DESIGN 2: below this the car is stopped (lateral dynamics frozen)
@@ -71,7 +71,8 @@ class ProfileDesigns:
     frontier_speed_mps: float | None = None  # braked for at the decided road's end; None: not
     spans: Sequence[tuple[int, int]] | None = None  # label span of each design: combine
     window_m: float = 0.0  # decisions are combined over this stretch (m; > 0 with spans)
-    tolerance: int = 1  # wrong frames among those combined that the rule tolerates
+    tolerance: int = 1  # wrong looks a side of a stretch may hold (the counting rule's j)
+    looks_per_side: int = LOOKS_PER_SIDE  # most looks on each side of a stretch
     envelope_index: int | None = None  # the envelope design (needed to combine)
 
 
@@ -130,6 +131,7 @@ class SpeedProfile:
 
     def with_combined_decision(self, look_m: float, design_index: int, time_s: float,
                                arc_length_m: float, *, window_m: float, tolerance: int,
+                               looks_per_side: int = LOOKS_PER_SIDE,
                                spans: Sequence[tuple[int, int]],
                                design_of_span: dict[tuple[int, int], int],
                                command_of: Callable[[int], float],
@@ -149,7 +151,7 @@ class SpeedProfile:
         first = next((k for k, q in enumerate(positions) if q > r - window_m), len(positions))
         spanned = sorted(((lk[0], spans[lk[1]]) for lk in looks), key=lambda lk: lk[0])
         new = stretch_spans(spanned, window_m=window_m, tolerance=tolerance, full=full,
-                            first=first)
+                            looks_per_side=looks_per_side, first=first)
         start = new[0][0] if new else r
         kept = [e for e in self.entries if e[0] < start]
         for position, span in new:
@@ -169,15 +171,12 @@ class SpeedProfile:
 def _recent_looks(looks: tuple[tuple[float, int], ...], after_m: float,
                   envelope_index: int) -> tuple[tuple[float, int], ...]:
     """The looks a combining profile keeps: those after ``after_m`` (two windows back: every
-    stretch a new look can change finds its left looks there), at most :data:`MAX_LOOKS`; over
-    that (a car at rest sees one look point tick after tick), abstentions that share their
-    look point with another look go first (they bound no stretch), then the oldest."""
+    stretch a new look can change finds its left looks there), at most the newest
+    :data:`MAX_LOOKS` (a car at rest sees one look point tick after tick). Only the oldest are
+    dropped, so each side of a stretch stays a run of consecutive ticks (docs/design.md 6.3);
+    ``envelope_index`` is kept for the callers' signature."""
+    del envelope_index
     kept = tuple(lk for lk in looks if lk[0] > after_m)
-    if len(kept) > MAX_LOOKS:
-        count = {}
-        for lk in kept:
-            count[lk[0]] = count.get(lk[0], 0) + 1
-        kept = tuple(lk for lk in kept if lk[1] != envelope_index or count[lk[0]] == 1)
     return kept[-MAX_LOOKS:]
 
 
@@ -293,9 +292,15 @@ class SpeedPlanner(LeafSystem):
             look = float(decision.position_m)
         x = self._state(context)[0]
         if m.combines:
+            # the counting rule's looks are the ticks' own certified ranges: the dwell time
+            # (DESIGN 6.5) holds a narrowing back with a wider join, and a look that is wider
+            # than its tick's set costs the rule an excluding look (docs/design.md 6.3)
+            requested = int(getattr(decision, "requested_design_index", -1))
             new = profile.with_combined_decision(
-                look, int(decision.design_index), float(decision.time_s), x,
-                window_m=m.window_m, tolerance=m.tolerance, spans=m._spans,
+                look, requested if requested >= 0 else int(decision.design_index),
+                float(decision.time_s), x,
+                window_m=m.window_m, tolerance=m.tolerance, looks_per_side=m.looks_per_side,
+                spans=m._spans,
                 design_of_span=m._design_of_span, command_of=m.design_command,
                 envelope_index=m.envelope_index)
         else:
@@ -353,7 +358,8 @@ def _check_motion_limits(*, max_decel_mps2: float, max_accel_mps2: float,
 
 
 def _check_decision_options(*, join, design_speeds_mps, frontier_speed_mps, window_m: float,
-                            spans, envelope_index, tolerance) -> None:
+                            spans, envelope_index, tolerance,
+                            looks_per_side: int = LOOKS_PER_SIDE) -> None:
     """:class:`LongitudinalMotion`'s checks of its join table, frontier speed and combined
     decisions, in order."""
     if (join is None) != (design_speeds_mps is None):
@@ -370,6 +376,10 @@ def _check_decision_options(*, join, design_speeds_mps, frontier_speed_mps, wind
                           "join table and envelope_index together")
     if isinstance(tolerance, bool) or not isinstance(tolerance, int) or tolerance < 0:
         raise ConfigError(f"longitudinal: tolerance = {tolerance!r} must be an integer >= 0")
+    if isinstance(looks_per_side, bool) or not isinstance(looks_per_side, int) or \
+            looks_per_side <= tolerance:
+        raise ConfigError(f"longitudinal: looks_per_side = {looks_per_side!r} must be an "
+                          f"integer above the tolerance {tolerance}")
 
 
 class LongitudinalMotion(Diagram):
@@ -421,12 +431,13 @@ class LongitudinalMotion(Diagram):
         _check_decision_options(join=d.join, design_speeds_mps=d.design_speeds_mps,
                                 frontier_speed_mps=d.frontier_speed_mps, window_m=d.window_m,
                                 spans=d.spans, envelope_index=d.envelope_index,
-                                tolerance=d.tolerance)
+                                tolerance=d.tolerance, looks_per_side=d.looks_per_side)
         self._join, self._speeds = d.join, d.design_speeds_mps
         self._spans = None if d.spans is None else [tuple(map(int, s)) for s in d.spans]
         self._design_of_span = (None if d.spans is None
                                 else {s: i for i, s in enumerate(self._spans)})
         self.tolerance = int(d.tolerance)
+        self.looks_per_side = int(d.looks_per_side)
         self.frontier_speed_mps = (None if d.frontier_speed_mps is None
                                    else self.speed_command(d.frontier_speed_mps))
         self.window_m = float(d.window_m)

@@ -91,8 +91,15 @@ class PerceptionSettings:
     backend: str = "auto"  # "torch", "onnxruntime"; auto: onnxruntime if installed and fp32
     quantization: str = "none"  # "none" or "int8" (onnxruntime; the certificate is the int8 one)
     interval: str = "conformal"  # classification interval: "conformal" (DESIGN 3.6) or "safe_set"
-    conformal_frames_per_class: int = 150  # "conformal": calibration frames per label (>= 19)
-    conformal_alpha_c: float = 0.05  # "conformal": miscoverage of the set per frame (DESIGN 3.6)
+    # "conformal" (docs/design.md 3.6): calibration frames per label, split over the bins
+    conformal_frames_per_class: int = 2000
+    # "conformal": the bound on the conformal step's miss rate in every stiffness bin, for all
+    # calibrations outside an event of probability conformal_delta_cal (alpha_total adds
+    # beta_cal + beta_test = 0.002)
+    conformal_alpha_c: float = 0.25
+    conformal_bins_per_label: int = 4  # "conformal": equal-width stiffness bins of each label
+    conformal_delta_cal: float = 0.001  # "conformal": probability the calibration is a bad one
+    conformal_calibration_n: int = 500  # "conformal": samples per calibration frame
 
     @property
     def resolved_decision(self) -> str:
@@ -124,26 +131,32 @@ class PerceptionSettings:
             raise ConfigError(f"{where}: perception.n0 = {self.n0} must be >= 0 (0: no "
                               "selection, every label range is tested at once)")
         keys = ("n", "batch_size", "calibration_frames_per_class", "calibration_n",
-                "conformal_frames_per_class")
+                "conformal_frames_per_class", "conformal_bins_per_label",
+                "conformal_calibration_n")
         for key in keys if self.resolved_decision == "sequential" else ("n0", *keys):
             if getattr(self, key) <= 0:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)} must be a "
                                   "positive integer")
-        for key in ("alpha", "alpha_c", "alpha_m", "conformal_alpha_c"):
+        for key in ("alpha", "alpha_c", "alpha_m", "conformal_alpha_c", "conformal_delta_cal"):
             if not 0 < getattr(self, key) < 1:
                 raise ConfigError(f"{where}: perception.{key} = {getattr(self, key)!r} must be "
                                   "in (0, 1)")
         if self.task == "classify" and self.interval == "conformal" and \
                 self.pipeline == "certified":
-            from drake_cert.certification.conformal import min_frames_per_label
+            from drake_cert.certification.pac_conformal import min_frames_per_bin
 
-            need = min_frames_per_label(self.conformal_alpha_c)
-            if self.conformal_frames_per_class < need:
+            bins = self.conformal_bins_per_label
+            need = min_frames_per_bin(self.conformal_alpha_c,
+                                      self.conformal_delta_cal / (3 * bins))
+            if self.conformal_frames_per_class < bins * need:
                 raise ConfigError(
                     f"{where}: perception.conformal_frames_per_class = "
-                    f"{self.conformal_frames_per_class} is below the {need} calibration frames "
-                    f"per label that conformal_alpha_c = {self.conformal_alpha_c:g} needs (with "
-                    "fewer, every label is always in the set and every interval is the envelope)")
+                    f"{self.conformal_frames_per_class} gives fewer than the {need} calibration "
+                    f"frames a stiffness bin (of {bins}) that conformal_alpha_c = "
+                    f"{self.conformal_alpha_c:g} at conformal_delta_cal = "
+                    f"{self.conformal_delta_cal:g} needs for any threshold (with fewer, a label "
+                    "never leaves the set); raise it to at least "
+                    f"{bins * need} or conformal_alpha_c")
 
 
 @dataclasses.dataclass
@@ -209,10 +222,12 @@ class Scenario:
     # abstentions over shorter spans; a route with a shorter stretch (first and last
     # excepted) is refused (drake_cert.systems.driving.check_route_is_seen)
     min_condition_length_m: float = 60.0
-    # wrong certified decisions among the frames around any point that the combined decisions
-    # tolerate (DESIGN 6.3): a stretch is narrowed only to what every choice of this many
-    # frames left out still supports; each one costs a camera period of look-ahead
-    tolerated_wrong_frames: int = 1
+    # the combined decisions' counting rule (docs/design.md 6.3): each side of a stretch holds
+    # its nearest looks_per_side camera ticks (abstentions included) within the window, and
+    # keeps the labels that all but tolerated_wrong_frames of them support; each tolerated
+    # frame costs a camera period of look-ahead
+    tolerated_wrong_frames: int = 14
+    looks_per_side: int = 20
     route: list[SegmentSpec] = dataclasses.field(default_factory=list)  # segments, in order
     camera: CameraSettings = dataclasses.field(default_factory=CameraSettings)
     perception: PerceptionSettings = dataclasses.field(default_factory=PerceptionSettings)
@@ -229,10 +244,16 @@ class Scenario:
             raise ConfigError(f"{where}: seed = {self.seed} must be >= 0 (or null)")
         _positive(self.transition_m, "transition_m", where)
         _positive(self.min_condition_length_m, "min_condition_length_m", where)
+        if isinstance(self.looks_per_side, bool) or not isinstance(self.looks_per_side, int) \
+                or not 1 <= self.looks_per_side <= 64:
+            raise ConfigError(f"{where}: looks_per_side = {self.looks_per_side!r} must be an "
+                              "integer in 1..64")
         if isinstance(self.tolerated_wrong_frames, bool) or not isinstance(
-                self.tolerated_wrong_frames, int) or not 0 <= self.tolerated_wrong_frames <= 3:
+                self.tolerated_wrong_frames, int) or \
+                not 0 <= self.tolerated_wrong_frames < self.looks_per_side:
             raise ConfigError(f"{where}: tolerated_wrong_frames = "
-                              f"{self.tolerated_wrong_frames!r} must be an integer in 0..3")
+                              f"{self.tolerated_wrong_frames!r} must be an integer in "
+                              f"0..{self.looks_per_side - 1} (below looks_per_side)")
         _non_negative(self.t_final_s, "t_final_s", where)
         if not self.route:
             raise ConfigError(f"{where}: route must list at least one segment")

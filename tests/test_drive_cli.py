@@ -184,32 +184,32 @@ def test_a_condition_stretch_shorter_than_the_assumed_shortest_is_refused(design
     text = _shipped_text("dry_to_snow")
     patch = "  - {length_m: 12.0, curvature_per_m: 0.0, condition: snow}\n"
     rain = "  - {length_m: 30.0, curvature_per_m: 0.0, condition: rain}"
-    assert rain in text  # 12 m of snow between sunny and rain: two boundaries in 60 m
+    assert rain in text  # 12 m of snow between sunny and rain: two boundaries in 80 m
     err = _refusal(designs, tmp_path, capsys, text.replace(rain, patch + rain))
-    assert "route segment 3 (snow, 12 m" in err and "min_condition_length_m = 60 m" in err
+    assert "route segment 3 (snow, 12 m" in err and "min_condition_length_m = 80 m" in err
 
 
 def test_an_assumed_shortest_stretch_within_the_road_between_two_frames_is_refused(
         designs, tmp_path, capsys):
-    text = _shipped_text("dry_to_snow").replace("\nmin_condition_length_m: 60.0",
-                                                "\nmin_condition_length_m: 3.0")
+    text = _shipped_text("dry_to_snow").replace("\nmin_condition_length_m: 80.0",
+                                                "\nmin_condition_length_m: 1.5")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "min_condition_length_m = 3 m" in err and "5 Hz" in err and "3.87 m" in err
+    assert "min_condition_length_m = 1.5 m" in err and "10 Hz" in err and "1.94 m" in err
 
 
 def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supports(
         designs, tmp_path, capsys):
-    # 40 m at 5 Hz: braking at 3.6 m/s^2 from v to the envelope's 7.00 m/s, 2 m margin and
-    # 0.35 s on an unmoved frontier plus one period (the decided road trails the newest look
-    # point by one tolerated wrong frame, DESIGN 6.3) carry v^2 + 3.96 v = 7.00^2 + 7.2 * 38,
-    # v = 16.09 m/s; the sunny design's 19.36 m/s needs 55.9 + 2 = 57.9 m
-    text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 60.0", "  look_ahead_m: 40.0")
+    # 40 m at 10 Hz: braking at 3.6 m/s^2 from v to the envelope's 7.00 m/s, 2 m margin and
+    # 0.175 s on an unmoved frontier plus 14 periods (the decided road trails the newest look
+    # point by the 14 tolerated wrong looks, docs/design.md 6.3) carry
+    # v^2 + 11.34 v = 7.00^2 + 7.2 * 38, v = 13.16 m/s; the sunny design's 19.36 m/s needs 77.7 m
+    text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 80.0", "  look_ahead_m: 40.0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 16.09 m/s" in err and "19.36 m/s" in err and "57.9 m" in err
-    # tolerating no wrong frame: v^2 + 2.52 v = 7.00^2 + 7.2 * 38, 16.75 m/s and 54.0 m
-    text = text.replace("tolerated_wrong_frames: 1", "tolerated_wrong_frames: 0")
+    assert "supports at most 13.16 m/s" in err and "19.36 m/s" in err and "77.7 m" in err
+    # tolerating no wrong look: v^2 + 1.26 v = 7.00^2 + 7.2 * 38, 17.34 m/s and 50.6 m
+    text = text.replace("tolerated_wrong_frames: 14", "tolerated_wrong_frames: 0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 16.75 m/s" in err and "54.0 m" in err
+    assert "supports at most 17.34 m/s" in err and "50.6 m" in err
 
 
 def test_drive_help_names_every_shipped_scenario(capsys):

@@ -366,3 +366,81 @@ def test_any_sequence_of_decisions_builds_a_sorted_profile_of_lattice_ranges(win
         positions = [e[0] for e in prof.entries]
         assert positions == sorted(positions)
         assert all(e[2] in range(6) and e[1] == RANGE_SPEEDS[e[2]] for e in prof.entries[1:])
+
+
+def test_a_side_keeps_the_labels_that_all_but_the_tolerated_looks_support():
+    from drake_cert.systems.decision_combination import counted_span, side_keeps
+
+    full = (0, 2)
+    side = [(0.0, (0, 0))] * 5 + [(0.0, (0, 2))] * 2 + [(0.0, (2, 2))] * 2  # 9 looks
+    assert side_keeps(side, tolerance=2, full=full) == {0}  # sunny 7 of 9; snow 4
+    assert side_keeps(side, tolerance=5, full=full) == {0, 2}  # 4 >= 9 - 5
+    assert side_keeps(side[:2], tolerance=2, full=full) == {0, 1, 2}  # too few: all kept
+    # the stretch gets the hull of what either side keeps; a contradiction, the envelope
+    assert counted_span(side, [(1.0, (2, 2))] * 9, tolerance=2, full=full) == (0, 2)
+    assert counted_span(side, [(1.0, (1, 1))] * 4 + [(1.0, (0, 0))] * 5, tolerance=2,
+                        full=full) == (0, 0)
+    assert counted_span([(0.0, (0, 0))] * 3 + [(0.0, (2, 2))] * 3,
+                        [(1.0, (1, 1))] * 3 + [(1.0, (2, 2))] * 3, tolerance=1,
+                        full=full) == (0, 2)
+
+
+@pytest.mark.parametrize("tolerance,looks_per_side", [(8, 14), (3, 6)])
+def test_with_at_most_j_wrong_looks_in_any_run_of_ticks_every_point_keeps_the_truth(
+        tolerance, looks_per_side):
+    # The counting rule's claim (docs/design.md 6.3): random routes whose stretches of one
+    # condition are at least the window long, a look every 1-4 m that holds the truth (or is
+    # an abstention) except at most `tolerance` wrong ones in any run of looks_per_side
+    # consecutive ticks: the design in force holds the condition at every point behind the
+    # newest look.
+    rng = np.random.default_rng(12)
+    window = 60.0
+    for _ in range(6):
+        bounds = np.cumsum(rng.uniform(window, 2.0 * window, size=5))
+        conds = rng.integers(0, 3, size=6)
+
+        def truth(x, bounds=bounds, conds=conds):
+            return int(conds[np.searchsorted(bounds, x)])
+
+        wrong, prof, look = [], SpeedProfile(((-math.inf, 6.0, 5),)), 0.0
+        for k in range(160):
+            look += float(rng.uniform(1.0, 4.0))
+            c = truth(look)
+            holding = [i for i, (lo, hi) in enumerate(RANGES) if lo <= c <= hi]
+            missing = [i for i, (lo, hi) in enumerate(RANGES) if not lo <= c <= hi]
+            if sum(1 for w in wrong if w > k - looks_per_side) < tolerance and \
+                    rng.random() < 0.4:
+                design = int(rng.choice(missing))
+                wrong.append(k)
+            else:
+                design = int(rng.choice(holding)) if rng.random() < 0.8 else 5
+            prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), look - 60.0,
+                                               window_m=window, tolerance=tolerance,
+                                               looks_per_side=looks_per_side, spans=RANGES,
+                                               design_of_span=SPANS,
+                                               command_of=lambda d: RANGE_SPEEDS[d],
+                                               envelope_index=5)
+            for x in np.linspace(look - 60.0, look, 61):
+                lo, hi = RANGES[prof.in_force(float(x))[1]]
+                assert lo <= truth(x) <= hi, (x, k, (lo, hi))
+        assert len(wrong) > 10  # the rule was tested against wrong looks
+
+
+def test_the_run_bound_holds_when_each_ticks_miss_chance_depends_on_the_past():
+    # Each tick is wrong with a probability chosen from the history (here: p after a clean
+    # tick, p / 2 after a wrong one, 0 every fifth tick), never above p: the count in a run
+    # of m ticks is dominated by Bin(m, p) (docs/design.md 6.2, the coupling argument).
+    from drake_cert.systems.decision_combination import run_failure_bound
+
+    rng = np.random.default_rng(13)
+    p, m, j, trials = 0.3, 8, 4, 40000
+    tail = run_failure_bound(p, m, j)
+    assert tail == pytest.approx(sum(math.comb(m, i) * p**i * (1 - p)**(m - i)
+                                     for i in range(j + 1, m + 1)))
+    wrong = np.zeros((trials, m), dtype=bool)
+    for t in range(m):
+        chance = np.where(wrong[:, t - 1], p / 2, p) if t else np.full(trials, p)
+        if t % 5 == 4:
+            chance = np.zeros(trials)
+        wrong[:, t] = rng.random(trials) < chance
+    assert float(np.mean(wrong.sum(axis=1) > j)) <= tail

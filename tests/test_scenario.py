@@ -84,10 +84,13 @@ def test_unknown_keys_raise_config_error_naming_the_key(tmp_path, edit, key):
     (lambda d: d["route"][0].update(curvature_per_m=0.1), "route[0].curvature_per_m"),
     (lambda d: d.update(seed=-1), "seed"),
     (lambda d: d["perception"].update(conformal_alpha_c=1.5), "perception.conformal_alpha_c"),
-    # 18 calibration frames a label cannot give alpha_c = 0.05 a threshold (19 can): every
-    # conformal set would be every label
-    (lambda d: d["perception"].update(conformal_frames_per_class=18),
-     "perception.conformal_frames_per_class = 18 is below the 19"),
+    # 131 calibration frames a label, 4 bins: under the 33 a bin that a bound of 0.25 at
+    # delta_cal / 12 needs for any threshold (132 is the edge): every set would be every label
+    (lambda d: d["perception"].update(conformal_frames_per_class=131),
+     "perception.conformal_frames_per_class = 131 gives fewer than the 33 calibration frames"),
+    (lambda d: d["perception"].update(conformal_delta_cal=0.0), "perception.conformal_delta_cal"),
+    (lambda d: d.update(tolerated_wrong_frames=20), "tolerated_wrong_frames = 20"),
+    (lambda d: d.update(looks_per_side=0), "looks_per_side = 0"),
 ])
 def test_missing_keys_and_bad_values_raise_config_error(tmp_path, edit, key):
     with pytest.raises(ConfigError, match=re.escape(key)):
@@ -132,3 +135,8 @@ def test_sequential_decisions_are_named_for_either_classification_interval_not_f
     regress = dataclasses.replace(shipped.perception, decision="sequential", task="regress")
     with pytest.raises(ConfigError, match="perception.decision = sequential needs task classify"):
         with_overrides(dataclasses.replace(shipped, perception=regress))
+
+
+def test_132_calibration_frames_a_label_are_the_least_the_shipped_target_accepts(tmp_path):
+    load_scenario(_write_variant(tmp_path, lambda d: d["perception"].update(
+        conformal_frames_per_class=132)))

@@ -45,5 +45,5 @@ def test_certify_keeps_freed_memory_and_synthesize_does_not(monkeypatch, tmp_pat
     assert cli.main(["certify", "--preset", "rtk-like", "--sigma", "0.25", "--models",
                      str(tmp_path)]) == 2
     assert calls == [True]
-    assert {"certify", "drive", "reproduce"} == set(cli.LONG_SAMPLING)
+    assert {"certify", "drive", "calibrate", "reproduce"} == set(cli.LONG_SAMPLING)
     capsys.readouterr()

@@ -38,6 +38,11 @@ from scipy.stats import norm
 
 from drake_cert.certification.classifier import ClassCertificate, SmoothedClassifier
 from drake_cert.certification.intervals import StiffnessBounds
+from drake_cert.certification.pac_conformal import (
+    BinThreshold,
+    check_bins_informative,
+    pac_binned_thresholds,
+)
 from drake_cert.certification.sampler import make_generator
 from drake_cert.certification.seeds import stream_seed
 from drake_cert.certification.statistics import check_alpha, check_count, clopper_pearson_one_sided
@@ -80,15 +85,23 @@ class RobustConformalCalibration:
     num_classes: int
     sigma: float
     n: int  # samples per calibration frame
-    alpha_c: float = ALPHA_C
+    alpha_c: float = ALPHA_C  # the conformal step's miss rate (PAC: the largest bin bound)
     beta_cal: float = BETA_CAL
     beta_test: float = BETA_TEST
+    # 0: marginal coverage (over calibration and test frame). > 0: calibration-conditional,
+    # per stiffness bin (drake_cert.certification.pac_conformal): alpha_total bounds the miss
+    # rate in every bin for all calibrations outside an event of probability delta_cal
+    delta_cal: float = 0.0
+    bins: dict[int, tuple[BinThreshold, ...]] | None = None  # per label, its bins (PAC only)
 
     def to_json(self) -> dict:
         """A JSON-ready dict (label keys as strings); :meth:`from_json` inverts it exactly."""
         out = dataclasses.asdict(self)
         for key in ("thresholds", "frames_per_label"):
             out[key] = {str(k): v for k, v in out[key].items()}
+        if self.bins is not None:
+            out["bins"] = {str(k): [dataclasses.asdict(r) for r in rows]
+                           for k, rows in self.bins.items()}
         return out
 
     @classmethod
@@ -96,11 +109,15 @@ class RobustConformalCalibration:
         data = dict(data)
         data["thresholds"] = {int(k): float(v) for k, v in data["thresholds"].items()}
         data["frames_per_label"] = {int(k): int(v) for k, v in data["frames_per_label"].items()}
+        if data.get("bins") is not None:
+            data["bins"] = {int(k): tuple(BinThreshold(**r) for r in rows)
+                            for k, rows in data["bins"].items()}
         return cls(**data)
 
     @property
     def alpha_total(self) -> float:
-        """Miscoverage guaranteed by the construction: ``alpha_c + beta_cal + beta_test``."""
+        """Miscoverage guaranteed by the construction: ``alpha_c + beta_cal + beta_test``
+        (marginal, or with ``delta_cal`` > 0 in every stiffness bin given the calibration)."""
         return self.alpha_c + self.beta_cal + self.beta_test
 
     def threshold(self, label: int, eps: float) -> float:
@@ -146,20 +163,13 @@ def thresholds_from_scores(scores: np.ndarray, labels: np.ndarray, num_classes: 
     return thresholds, sizes
 
 
-def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Tensor,
-                               labels: Sequence[int], *, n: int, batch_size: int,
-                               alpha_c: float = ALPHA_C, beta_cal: float = BETA_CAL,
-                               beta_test: float = BETA_TEST, root_seed: int | None = 0,
-                               progress: Callable[[Iterable], Iterable] | None = None
-                               ) -> RobustConformalCalibration:
-    """Calibrate the robust conformal label set on held-out frames (see module doc).
-
-    Each calibration frame i draws n noisy samples from its own stream
-    (``seeds.stream_seed(root_seed, i, "calibration", split="calibration")``; ``root_seed``
-    None: fresh global noise) and scores ``CPlow`` of its true label's votes.
-    """
-    for name, a in (("alpha_c", alpha_c), ("beta_cal", beta_cal), ("beta_test", beta_test)):
-        check_alpha(a, name)
+def true_label_counts(classifier: SmoothedClassifier, frames: torch.Tensor,
+                      labels: Sequence[int], *, n: int, batch_size: int,
+                      root_seed: int | None = 0,
+                      progress: Callable[[Iterable], Iterable] | None = None) -> np.ndarray:
+    """Votes for its true label among n noisy samples of each calibration frame; frame i draws
+    from its own stream (``seeds.stream_seed(root_seed, i, "calibration",
+    split="calibration")``; ``root_seed`` None: fresh global noise)."""
     check_count(n, "n")
     labels = np.asarray([int(v) for v in labels])
     if len(frames) != len(labels):
@@ -176,10 +186,55 @@ def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Ten
         counts = classifier.sample_counts(frames[i], n, batch_size,
                                           make_generator(seed, classifier.device))
         true_counts[i] = counts[labels[i]]
+    return true_counts
+
+
+def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Tensor,
+                               labels: Sequence[int], *, n: int, batch_size: int,
+                               alpha_c: float = ALPHA_C, beta_cal: float = BETA_CAL,
+                               beta_test: float = BETA_TEST, root_seed: int | None = 0,
+                               progress: Callable[[Iterable], Iterable] | None = None
+                               ) -> RobustConformalCalibration:
+    """Calibrate the robust conformal label set on held-out frames (see module doc): marginal
+    coverage, one threshold per label (:func:`true_label_counts` draws the votes)."""
+    for name, a in (("alpha_c", alpha_c), ("beta_cal", beta_cal), ("beta_test", beta_test)):
+        check_alpha(a, name)
+    true_counts = true_label_counts(classifier, frames, labels, n=n, batch_size=batch_size,
+                                    root_seed=root_seed, progress=progress)
     scores = calibration_scores(true_counts, n, beta_cal)
-    thresholds, sizes = thresholds_from_scores(scores, labels, classifier.num_classes, alpha_c)
+    thresholds, sizes = thresholds_from_scores(scores, np.asarray(labels, dtype=np.int64),
+                                               classifier.num_classes, alpha_c)
     return RobustConformalCalibration(thresholds, sizes, classifier.num_classes,
                                       classifier.sigma, int(n), alpha_c, beta_cal, beta_test)
+
+
+def pac_calibration_from_counts(true_counts: np.ndarray, labels: Sequence[int],
+                                stiffness_n_per_rad: Sequence[float],
+                                intervals: Sequence[tuple[float, float]], *, n: int,
+                                sigma: float, bins: int, miss_target: float, delta_cal: float,
+                                beta_cal: float = BETA_CAL, beta_test: float = BETA_TEST,
+                                label_names: Sequence[str] | None = None
+                                ) -> RobustConformalCalibration:
+    """The calibration-conditional, per-stiffness-bin calibration
+    (:mod:`drake_cert.certification.pac_conformal`) from the calibration frames' true-label
+    votes (n samples each). ``alpha_c`` of the result is the largest bin bound (at most
+    ``miss_target``); :class:`CertificationError` when a bin has too few frames for any
+    threshold (``label_names`` name it)."""
+    for name, a in (("beta_cal", beta_cal), ("beta_test", beta_test)):
+        check_alpha(a, name)
+    labels = np.asarray(labels, dtype=np.int64)
+    scores = calibration_scores(np.asarray(true_counts), n, beta_cal)
+    thresholds, per_bin = pac_binned_thresholds(scores, labels, np.asarray(stiffness_n_per_rad),
+                                                intervals, bins=bins, miss_target=miss_target,
+                                                delta_cal=delta_cal)
+    names = list(label_names) if label_names is not None else \
+        [str(i) for i in range(len(intervals))]
+    check_bins_informative(per_bin, names)
+    worst = max(r.miss_bound for rows in per_bin.values() for r in rows)
+    sizes = {lab: int((labels == lab).sum()) for lab in range(len(intervals))}
+    return RobustConformalCalibration(thresholds, sizes, len(intervals), float(sigma), int(n),
+                                      float(worst), beta_cal, beta_test, float(delta_cal),
+                                      {lab: tuple(rows) for lab, rows in per_bin.items()})
 
 
 @dataclasses.dataclass(frozen=True)

@@ -39,6 +39,8 @@ COMMANDS = {
     "sweep": "train candidate classifiers and pick the one that abstains least without "
              "certifying wrong more",
     "drive": "drive a route in the certified closed-loop Diagram (camera to steering)",
+    "calibrate": "draw a scenario model's robust conformal calibration votes and print its "
+                 "per-stiffness-bin thresholds",
     "reproduce": "reproduce the paper's tables from per-frame episodes",
 }
 
@@ -55,6 +57,7 @@ HEAVY_IMPORTS = {
     "certify": ("numpy", "torch"),
     "sweep": ("numpy", "torch"),
     "drive": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
+    "calibrate": ("numpy", "torch", "pydrake.systems.framework"),
     "reproduce": ("numpy", "torch", "cvxpy", "pydrake.systems.analysis"),
 }
 
@@ -95,7 +98,7 @@ class HelpFormatter(argparse.RawDescriptionHelpFormatter):
 
 # Commands whose noisy sampling runs long: glibc is asked to keep freed memory there
 # (certification.sampler.retain_freed_memory), and nowhere else (not in a notebook kernel).
-LONG_SAMPLING = ("certify", "drive", "reproduce")
+LONG_SAMPLING = ("certify", "drive", "calibrate", "reproduce")
 
 
 class _Parser(argparse.ArgumentParser):
