@@ -33,6 +33,7 @@ only narrows or stays. Proofs: docs/design.md 6.3.
 
 from __future__ import annotations
 
+import bisect
 from collections.abc import Sequence
 
 Span = tuple[int, int]
@@ -55,6 +56,8 @@ def side_keeps(side: Sequence[Look], *, tolerance: int, full: Span) -> set[int]:
     """The labels that at least ``len(side) - tolerance`` of the side's looks support (every
     label when the side has at most ``tolerance`` looks)."""
     need = len(side) - tolerance
+    if need <= 0:
+        return set(range(full[0], full[1] + 1))
     return {lab for lab in range(full[0], full[1] + 1)
             if sum(1 for _, (lo, hi) in side if lo <= lab <= hi) >= need}
 
@@ -83,12 +86,15 @@ def stretch_spans(looks: Sequence[Look], *, window_m: float, tolerance: int, ful
     rest), so that each side is a run of consecutive ticks.
     """
     positions = sorted({lk[0] for lk in looks})
+    at = [lk[0] for lk in looks]  # sorted: each side is a slice found by bisection
     out = []
     for k in range(max(first, 0), len(positions) - 1):
         start, end = positions[k], positions[k + 1]
         half = 0.5 * (window_m - (end - start))
-        left = [lk for lk in reversed(looks) if start - half < lk[0] <= start][:looks_per_side]
-        right = [lk for lk in looks if end <= lk[0] < end + half][:looks_per_side]
+        stop = bisect.bisect_right(at, start)  # looks at or before start: looks[:stop]
+        left = looks[max(bisect.bisect_right(at, start - half), stop - looks_per_side):stop]
+        begin = bisect.bisect_left(at, end)  # looks at or after end: looks[begin:]
+        right = looks[begin:min(bisect.bisect_left(at, end + half), begin + looks_per_side)]
         span = counted_span(left, right, tolerance=tolerance, full=full) \
             if half > 0 and left and right else full
         out.append((start, span))
