@@ -202,11 +202,11 @@ def conformal_votes_spec(scenario: Scenario, conditions: ConditionsTable):
 
 
 def conformal_votes(model, scenario: Scenario, conditions: ConditionsTable,
-                    progress: Callable | None = None):
+                    progress: Callable | None = None, *, refresh: bool = False):
     """The calibration frames' true-label votes for the scenario's robust conformal
     calibration: shipped beside the model when the spec matches, else cached, else drawn
-    (``progress`` wraps the frames); ``model``: the module perception evaluates (calibrated as
-    evaluated: ONNX Runtime, int8, bf16)."""
+    (``progress`` wraps the frames; ``refresh``: always drawn); ``model``: the module
+    perception evaluates (calibrated as evaluated: ONNX Runtime, int8, bf16)."""
     from drake_cert.certification import conformal as rc
     from drake_cert.certification.classifier import SmoothedClassifier
     from drake_cert.certification.shipped_calibration import CalibrationVotes, calibration_votes
@@ -226,7 +226,8 @@ def conformal_votes(model, scenario: Scenario, conditions: ConditionsTable,
         return CalibrationVotes(spec, cal.labels.numpy().astype(np.int64),
                                 cal.stiffness_n_per_rad.numpy().astype(np.float64), counts)
 
-    return calibration_votes(spec, model_path(p.preset, p.task, p.sigma), compute, progress)
+    return calibration_votes(spec, model_path(p.preset, p.task, p.sigma), compute, progress,
+                             refresh=refresh)
 
 
 def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,

@@ -145,7 +145,7 @@ class SpeedProfile:
         """
         r, full = float(look_m), spans[int(envelope_index)]
         looks = (*self.looks, (r, int(design_index)))
-        looks = _recent_looks(looks, r - 2.0 * window_m, int(envelope_index))
+        looks = _recent_looks(looks, r - 2.0 * window_m)
         positions = sorted({lk[0] for lk in looks})
         # only stretches starting less than a window before r can pair with the new look
         first = next((k for k, q in enumerate(positions) if q > r - window_m), len(positions))
@@ -168,14 +168,12 @@ class SpeedProfile:
         return SpeedProfile(tuple(kept), float(time_s), max(self.last_look_m, r), looks=looks)
 
 
-def _recent_looks(looks: tuple[tuple[float, int], ...], after_m: float,
-                  envelope_index: int) -> tuple[tuple[float, int], ...]:
+def _recent_looks(looks: tuple[tuple[float, int], ...],
+                  after_m: float) -> tuple[tuple[float, int], ...]:
     """The looks a combining profile keeps: those after ``after_m`` (two windows back: every
     stretch a new look can change finds its left looks there), at most the newest
     :data:`MAX_LOOKS` (a car at rest sees one look point tick after tick). Only the oldest are
-    dropped, so each side of a stretch stays a run of consecutive ticks (docs/design.md 6.3);
-    ``envelope_index`` is kept for the callers' signature."""
-    del envelope_index
+    dropped, so each side of a stretch stays a run of consecutive ticks (docs/design.md 6.3)."""
     kept = tuple(lk for lk in looks if lk[0] > after_m)
     return kept[-MAX_LOOKS:]
 

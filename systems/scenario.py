@@ -145,6 +145,8 @@ class PerceptionSettings:
                 self.pipeline == "certified":
             from drake_cert.certification.pac_conformal import min_frames_per_bin
 
+            # a necessary check before the conditions are read (every preset has 3 labels);
+            # the calibration names any bin that is still short
             bins = self.conformal_bins_per_label
             need = min_frames_per_bin(self.conformal_alpha_c,
                                       self.conformal_delta_cal / (3 * bins))

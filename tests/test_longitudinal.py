@@ -267,6 +267,24 @@ def test_a_wrong_frame_at_a_curve_entry_cannot_reach_behind_its_look_point():
         assert lo <= truth <= hi, (x, (lo, hi))
 
 
+def _random_look(rng, condition, wrong):
+    """A random design for a look at ``condition``: one whose range misses it (``wrong``), else
+    one holding it (an abstention one time in five)."""
+    if wrong:
+        return int(rng.choice([i for i, (lo, hi) in enumerate(RANGES)
+                               if not lo <= condition <= hi]))
+    holding = [i for i, (lo, hi) in enumerate(RANGES) if lo <= condition <= hi]
+    return int(rng.choice(holding)) if rng.random() < 0.8 else 5
+
+
+def _combined_step(prof, look, design, k, x, **rule):
+    """The profile after tick k's look, combined by the rule of ``rule`` (window, tolerance)."""
+    return prof.with_combined_decision(look, design, 0.1 * (k + 1), x, spans=RANGES,
+                                       design_of_span=SPANS,
+                                       command_of=lambda d: RANGE_SPEEDS[d],
+                                       envelope_index=5, **rule)
+
+
 @pytest.mark.parametrize("tolerance", [1, 2])
 def test_with_at_most_the_tolerated_wrong_frames_in_a_window_every_point_keeps_the_truth(
         tolerance):
@@ -287,20 +305,13 @@ def test_with_at_most_the_tolerated_wrong_frames_in_a_window_every_point_keeps_t
         look = 0.0
         for k in range(120):
             look += float(rng.uniform(1.0, 4.0))
-            c = truth(look)
-            holding = [i for i, (lo, hi) in enumerate(RANGES) if lo <= c <= hi]
-            missing = [i for i, (lo, hi) in enumerate(RANGES) if not lo <= c <= hi]
             recent = [w for w in wrong if w > look - 2 * window]
-            if len(recent) < tolerance and rng.random() < 0.15:
-                design = int(rng.choice(missing))
+            is_wrong = len(recent) < tolerance and rng.random() < 0.15
+            design = _random_look(rng, truth(look), is_wrong)
+            if is_wrong:
                 wrong.append(look)
-            else:
-                design = int(rng.choice(holding)) if rng.random() < 0.8 else 5
-            prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), look - 40.0,
-                                               window_m=window, tolerance=tolerance,
-                                               spans=RANGES, design_of_span=SPANS,
-                                               command_of=lambda d: RANGE_SPEEDS[d],
-                                               envelope_index=5)
+            prof = _combined_step(prof, look, design, k, look - 40.0, window_m=window,
+                                  tolerance=tolerance)
             for x in np.linspace(look - 40.0, look, 41):
                 lo, hi = RANGES[prof.in_force(float(x))[1]]
                 assert lo <= truth(x) <= hi, (x, k, (lo, hi), wrong)
@@ -405,21 +416,13 @@ def test_with_at_most_j_wrong_looks_in_any_run_of_ticks_every_point_keeps_the_tr
         wrong, prof, look = [], SpeedProfile(((-math.inf, 6.0, 5),)), 0.0
         for k in range(160):
             look += float(rng.uniform(1.0, 4.0))
-            c = truth(look)
-            holding = [i for i, (lo, hi) in enumerate(RANGES) if lo <= c <= hi]
-            missing = [i for i, (lo, hi) in enumerate(RANGES) if not lo <= c <= hi]
-            if sum(1 for w in wrong if w > k - looks_per_side) < tolerance and \
-                    rng.random() < 0.4:
-                design = int(rng.choice(missing))
+            is_wrong = sum(1 for w in wrong if w > k - looks_per_side) < tolerance and \
+                rng.random() < 0.4
+            design = _random_look(rng, truth(look), is_wrong)
+            if is_wrong:
                 wrong.append(k)
-            else:
-                design = int(rng.choice(holding)) if rng.random() < 0.8 else 5
-            prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), look - 60.0,
-                                               window_m=window, tolerance=tolerance,
-                                               looks_per_side=looks_per_side, spans=RANGES,
-                                               design_of_span=SPANS,
-                                               command_of=lambda d: RANGE_SPEEDS[d],
-                                               envelope_index=5)
+            prof = _combined_step(prof, look, design, k, look - 60.0, window_m=window,
+                                  tolerance=tolerance, looks_per_side=looks_per_side)
             for x in np.linspace(look - 60.0, look, 61):
                 lo, hi = RANGES[prof.in_force(float(x))[1]]
                 assert lo <= truth(x) <= hi, (x, k, (lo, hi))

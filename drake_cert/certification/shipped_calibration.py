@@ -111,10 +111,13 @@ def write_shipped(model_file: str | Path, votes: CalibrationVotes) -> Path:
 
 def calibration_votes(spec: VotesSpec, model_file: str | Path,
                       compute: Callable[[Callable | None], CalibrationVotes],
-                      progress: Callable[[Iterable], Iterable] | None = None
-                      ) -> CalibrationVotes:
+                      progress: Callable[[Iterable], Iterable] | None = None, *,
+                      refresh: bool = False) -> CalibrationVotes:
     """The shipped votes if their spec is ``spec``, else the cached ones, else
-    ``compute(progress)`` (then cached)."""
+    ``compute(progress)`` (then cached); ``refresh``: always ``compute(progress)``, reading
+    neither (what ``drake-cert calibrate --ship`` writes)."""
+    if refresh:
+        return compute(progress)
     shipped = read_shipped(model_file)
     if shipped is not None and shipped.spec == spec:
         return shipped

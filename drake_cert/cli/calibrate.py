@@ -35,9 +35,6 @@ def check(args) -> None:
 
 
 def run(args) -> int:
-    import os
-    import tempfile
-
     from drake_cert.certification.sampler import with_precision
     from drake_cert.certification.shipped_calibration import write_shipped
     from drake_cert.cli.progress import progress_bar
@@ -53,9 +50,8 @@ def run(args) -> int:
     def progress(iterable):
         return progress_bar(iterable, desc="calibration frames", unit="frame")
 
-    if args.ship:  # a fresh cache: nothing read back, every vote drawn here
-        os.environ["DRAKE_CERT_CACHE"] = tempfile.mkdtemp(prefix="drake-cert-calibrate-")
-    votes = driving.conformal_votes(evaluated, scenario, conditions, progress)
+    votes = driving.conformal_votes(evaluated, scenario, conditions, progress,
+                                    refresh=args.ship)
     if args.ship:
         path = write_shipped(model_path(p.preset, p.task, p.sigma), votes)
         print(f"wrote {path}", file=sys.stderr)
