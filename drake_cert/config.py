@@ -346,6 +346,9 @@ class ConditionsTable:
                                   "must be positive")
 
 
+MAX_SAMPLE_PERIOD_S = 0.02  # longest controller.sample_period_s accepted (50 Hz)
+
+
 @dataclasses.dataclass
 class ControllerSettings:
     """L1 adaptive controller settings (DESIGN section 4)."""
@@ -371,6 +374,12 @@ class ControllerSettings:
                               "expected 'piecewise_constant' or 'gradient'")
         _require_positive(self.adaptation_gain, "controller.adaptation_gain", where)
         _require_positive(self.sample_period_s, "controller.sample_period_s", where)
+        if self.sample_period_s > MAX_SAMPLE_PERIOD_S:
+            raise ConfigError(
+                f"{where}: controller.sample_period_s = {self.sample_period_s:g} s is above "
+                f"{MAX_SAMPLE_PERIOD_S:g} s: the piecewise-constant law's filter needs "
+                "k w_max T_s <= 1 with filter gains of about 100/s and more (docs/design.md "
+                "5.3a); the period is in seconds (1 ms is 0.001)")
         _require_positive(self.projection_epsilon, "controller.projection_epsilon", where)
         _require_positive(self.min_radius_m, "controller.min_radius_m", where)
         for key in ("preview_ahead_s", "preview_window_s"):

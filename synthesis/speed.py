@@ -9,10 +9,16 @@ Search: the conditions are evaluated at ``k = k_bar`` on the speed grid (step
 (1/V terms), so the grid is scanned rather than bisected. The largest grid speed where a, c, d
 hold and the grid eigenvalues of b hold on ``[V_min, V]`` is certified for b by corner LMIs
 (:func:`certify_reference_stability`); if that fails the next lower grid speed is tried. The
-cell above it is refined by bisection only when every condition that fails at the cell's top
-is monotone in V (grip: ``V^2 / R``; b: a growing speed range), and every bisection point is
-re-checked against all four conditions. Finally k is lowered to the smallest multiple of
-``k_bar / 10`` that still meets a and b at the chosen speed (more time-delay margin).
+cell above it is then resolved to :data:`SPEED_RESOLUTION_MPS`: by bisection when every
+condition that fails at the cell's top is monotone in V (grip: ``V^2 / R``; b: a growing speed
+range), else by scanning the cell's points from the top down (the L1 condition); every point is
+checked against all four conditions. Assumption (docs/design.md 5.3): no window of safe speeds
+opens above a grid point where some condition fails and closes before the next grid point.
+Filter gain: ``k_bar = filter_gain_max``, for the piecewise-constant law capped at the
+sample-period limit ``k w_max T_s <= 1`` (:func:`sample_period_filter_gain_limit`); where the
+L1 condition binds and that limit is higher, the search runs again at the limit and the faster
+result is kept. Finally k is lowered to the smallest multiple of ``k_bar / 10`` that still meets
+a and b at the chosen speed (more time-delay margin).
 None qualifies: speed 0 and the first failing condition at the grid speed where the most
 conditions held.
 """
@@ -29,7 +35,7 @@ from drake_cert.synthesis.gains import closed_loop_spectral_abscissa
 L1_MARGIN_MIN = 1.0e-3  # require ||G|| L <= 1 - 1e-3 (numerical slack for verification)
 OFFSET_MARGIN_MIN_M = 1.0e-3
 EIG_MARGIN_MIN_PER_S = 1.0e-6
-REFINE_BISECTIONS = 5  # the grid cell is refined to step / 32
+SPEED_RESOLUTION_MPS = 1.0 / 64.0  # safe speeds are resolved to this within the grid cell
 FILTER_GAIN_FRACTIONS = np.arange(1, 11) / 10.0
 MIN_LMI_SEGMENT_MPS = 0.25
 GAIN_CHECK_POINTS = (21, 26)
@@ -192,17 +198,22 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
 
     ``slip_bound``: the design's normalised tire slip bound z_b (default
     ``normalised_slip_max``); the evaluator's interval must be the one widened for it.
-    The scan runs at ``k_bar = filter_gain_max``; where the L1 condition leaves no safe speed
-    there and the piecewise-constant law runs, it runs again at the sample-period limit
-    (:func:`sample_period_filter_gain_limit`) when that is higher.
+    The scan runs at ``k_bar = filter_gain_max`` (for the piecewise-constant law at most its
+    sample-period limit, :func:`sample_period_filter_gain_limit`); where the L1 condition binds
+    and that law runs, it runs again at the sample-period limit when that is higher, and the
+    faster of the two results is returned.
     """
     settings = evaluator.settings
-    result = _search_at(evaluator, friction_mu_lo, slip_bound, settings.synthesis.filter_gain_max)
+    k_bar = settings.synthesis.filter_gain_max
     limit = sample_period_filter_gain_limit(settings, evaluator.interval)
-    if (result.failed_condition == cond.L1_CONDITION and evaluator.law == cond.PIECEWISE_CONSTANT
-            and limit > settings.synthesis.filter_gain_max):
+    sampled = evaluator.law == cond.PIECEWISE_CONSTANT
+    if sampled:
+        k_bar = min(k_bar, limit)
+    result = _search_at(evaluator, friction_mu_lo, slip_bound, k_bar)
+    l1_binds = cond.L1_CONDITION in (result.failed_condition, result.limited_by)
+    if sampled and l1_binds and limit > k_bar:
         wider = _search_at(evaluator, friction_mu_lo, slip_bound, float(limit))
-        if wider.speed_mps > 0.0:
+        if wider.speed_mps > result.speed_mps:
             return wider
     return result
 
@@ -257,31 +268,50 @@ def _search_at(evaluator: IntervalEvaluator, friction_mu_lo: float, slip_bound: 
 
 
 def refine_cell(evaluator: IntervalEvaluator, margins_at, scan, grid, chosen: int,
-                k_bar: float) -> float:
-    """Bisect the grid cell above ``grid[chosen]`` when what fails at its top is monotone in V.
+                k_bar: float) -> tuple[float, str]:
+    """The highest point of the grid cell above ``grid[chosen]``, on a lattice of step at most
+    :data:`SPEED_RESOLUTION_MPS`, that meets every condition (b certified by its LMI).
 
-    Grip (``V^2 / R``) and b (a growing speed range) are monotone; every bisection point is
-    re-checked against every condition. Returns the highest speed that passed (m/s) and the
-    condition that failed at the lowest speed above it (:func:`binding_condition`; a speed
-    whose margins all hold failed the certificate of b).
+    When what fails at the cell's top is monotone in V (grip ``V^2 / R``, rollover, comfort, b
+    on a growing speed range) the lattice is bisected; otherwise (the L1 condition, the
+    offset) it is scanned from the top down. Returns that speed (m/s) and the condition that
+    failed at the lattice point just above it (:func:`binding_condition`; a point whose
+    margins all hold failed the certificate of b).
     """
-    speed, floor = float(grid[chosen]), scan[chosen]["reference_stability_per_s"]
+    lo, hi = float(grid[chosen]), float(grid[chosen + 1])
+    floor = scan[chosen]["reference_stability_per_s"]
+    points = max(1, int(np.ceil((hi - lo) / SPEED_RESOLUTION_MPS - 1e-9)))
+    step = (hi - lo) / points
+
+    def check(i: int) -> tuple[bool, str]:
+        m = margins_at(lo + i * step, k_bar, floor)
+        failed = failed_conditions(m)
+        if failed:
+            return False, binding_condition(m)
+        if not evaluator.reference_certified(lo + i * step, k_bar):
+            return False, cond.REFERENCE_STABILITY
+        return True, ""
+
+    binding = binding_condition(scan[chosen + 1])
+    if binding == cond.SPEED_RANGE:  # every margin held at the top: b's certificate failed
+        binding = cond.REFERENCE_STABILITY
     monotone = {cond.GRIP, cond.ROLLOVER, cond.COMFORT, cond.REFERENCE_STABILITY}
     top_failures = set(failed_conditions(scan[chosen + 1])) or {cond.REFERENCE_STABILITY}
-    binding = binding_condition(scan[chosen + 1])
-    if binding == cond.SPEED_RANGE:
-        binding = cond.REFERENCE_STABILITY
-    if not top_failures <= monotone:
-        return speed, binding
-    lo, hi = speed, float(grid[chosen + 1])
-    for _ in range(REFINE_BISECTIONS):
-        mid = 0.5 * (lo + hi)
-        m = margins_at(mid, k_bar, floor)
-        if not failed_conditions(m) and evaluator.reference_certified(mid, k_bar):
-            lo = mid
-        else:
-            hi = mid
-            binding = binding_condition(m) if failed_conditions(m) else cond.REFERENCE_STABILITY
+    if top_failures <= monotone:
+        good, bad = 0, points  # lattice indices: good passes, bad fails
+        while bad - good > 1:
+            mid = (good + bad) // 2
+            ok, why = check(mid)
+            if ok:
+                good = mid
+            else:
+                bad, binding = mid, why
+        return lo + good * step, binding
+    for i in range(points - 1, 0, -1):
+        ok, why = check(i)
+        if ok:
+            return lo + i * step, binding
+        binding = why
     return lo, binding
 
 

@@ -534,15 +534,18 @@ def _consistency_failures(design, settings, conditions) -> list[tuple[str, str]]
     if abs(design.nominal_stiffness_n_per_rad - mid) > 1e-9 * mid:
         out.append((CONSISTENCY, f"nominal stiffness {design.nominal_stiffness_n_per_rad} is "
                                  f"not the certified interval's midpoint {mid}"))
-    # k may exceed filter_gain_max up to the sample-period limit k w_max T_s <= 1 (pc law)
+    # the piecewise-constant law: k w_max T_s <= 1 always (above filter_gain_max only where
+    # the L1 condition binds, docs/design.md 5.3a); the gradient law: k <= filter_gain_max
     w_max = design.certified_interval[1] / design.nominal_stiffness_n_per_rad
-    k_top = syn.filter_gain_max
     if design.certified_law == "piecewise_constant":
-        k_top = max(k_top, 1.0 / (w_max * settings.controller.sample_period_s) * (1 + 1e-12))
-    if not 0.0 < design.filter_gain <= k_top:
-        out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, {k_top:.6g}] "
-                                 f"(filter_gain_max {syn.filter_gain_max:g}, or the sample-period "
-                                 f"limit 1 / (w_max T_s) for the piecewise-constant law)"))
+        t_s = settings.controller.sample_period_s
+        if not 0.0 < design.filter_gain * w_max * t_s <= 1.0 + 1e-12:
+            out.append((CONSISTENCY, f"filter gain {design.filter_gain:g} breaks the sample-period "
+                                     f"limit k w_max T_s <= 1 ({design.filter_gain * w_max * t_s:.4g}"
+                                     f" with w_max {w_max:.4g}, T_s {t_s:g} s)"))
+    elif not 0.0 < design.filter_gain <= syn.filter_gain_max:
+        out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, filter_gain_max "
+                                 f"{syn.filter_gain_max:g}]"))
     if design.speed_mps > 0.0:
         if design.failed_condition:
             out.append((CONSISTENCY, f"speed {design.speed_mps} m/s with failed condition "

@@ -195,6 +195,19 @@ def test_steering_limit_at_or_above_half_pi_is_a_config_error(tmp_path, capsys):
     assert "below pi/2" in one_line_exit_2(capsys, ["synthesize", "--vehicle", str(bad)])
 
 
+def test_a_sample_period_of_one_second_is_refused_naming_the_unit(tmp_path, capsys):
+    """controller.sample_period_s: 1.0 (1 s written for 1 ms) would synthesize filter gains
+    hundreds of times past k w_max T_s <= 1 (docs/design.md 5.3a)."""
+    text = (ROOT / "drake_cert/data/settings.yaml").read_text()
+    bad = tmp_path / "settings.yaml"
+    bad.write_text(text.replace("sample_period_s: 0.001 ", "sample_period_s: 1.0   "))
+    assert "sample_period_s: 1.0" in bad.read_text()
+    with pytest.raises(ConfigError, match="1 ms is 0.001"):
+        load_settings(bad)
+    line = one_line_exit_2(capsys, ["synthesize", "--settings", str(bad)])
+    assert "controller.sample_period_s = 1 s" in line
+
+
 # --------------------------------------------------------------------------- certify inputs
 
 def test_certify_rejects_a_frame_size_other_than_the_models(models, capsys):

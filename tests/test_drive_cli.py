@@ -199,17 +199,17 @@ def test_an_assumed_shortest_stretch_within_the_road_between_two_frames_is_refus
 
 def test_a_look_ahead_too_short_for_the_top_speed_is_refused_naming_what_it_supports(
         designs, tmp_path, capsys):
-    # 40 m at 10 Hz: braking at 3.6 m/s^2 from v to the envelope's 7.00 m/s, 2 m margin and
+    # 40 m at 10 Hz: braking at 3.6 m/s^2 from v to the envelope's 8.28 m/s, 2 m margin and
     # 0.175 s on an unmoved frontier plus 14 periods (the decided road trails the newest look
     # point by the 14 tolerated wrong looks, docs/design.md 6.3) carry
-    # v^2 + 11.34 v = 7.00^2 + 7.2 * 38, v = 13.16 m/s; the sunny design's 19.36 m/s needs 77.7 m
+    # v^2 + 11.34 v = 8.28^2 + 7.2 * 38, v = 13.68 m/s; the sunny design's 19.36 m/s needs 75.0 m
     text = _shipped_text("dry_to_snow").replace("  look_ahead_m: 80.0", "  look_ahead_m: 40.0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 13.16 m/s" in err and "19.36 m/s" in err and "77.7 m" in err
-    # tolerating no wrong look: v^2 + 1.26 v = 7.00^2 + 7.2 * 38, 17.34 m/s and 50.6 m
+    assert "supports at most 13.68 m/s" in err and "19.36 m/s" in err and "75.0 m" in err
+    # tolerating no wrong look: v^2 + 1.26 v = 8.28^2 + 7.2 * 38, 17.88 m/s and 47.9 m
     text = text.replace("tolerated_wrong_frames: 14", "tolerated_wrong_frames: 0")
     err = _refusal(designs, tmp_path, capsys, text)
-    assert "supports at most 17.34 m/s" in err and "50.6 m" in err
+    assert "supports at most 17.88 m/s" in err and "47.9 m" in err
 
 
 def test_drive_help_names_every_shipped_scenario(capsys):

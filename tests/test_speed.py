@@ -11,7 +11,17 @@ from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis import conditions as cond
 from drake_cert.synthesis.design import VEHICLE_LIMIT_KEYS
 from drake_cert.synthesis.equilibrium import adaptive_steady_state
-from drake_cert.synthesis.table import design_label_ranges, friction_lower_bound, synthesize_design
+from drake_cert.synthesis.speed import (
+    L1_MARGIN_MIN,
+    SPEED_RESOLUTION_MPS,
+    sample_period_filter_gain_limit,
+)
+from drake_cert.synthesis.table import (
+    design_label_ranges,
+    friction_lower_bound,
+    synthesize_design,
+    synthesize_label_range,
+)
 from drake_cert.synthesis.verify import cornering_slip_angles
 
 
@@ -43,7 +53,9 @@ def test_every_safe_speed_meets_all_four_conditions_at_that_speed(default_design
     for d in default_design_table.designs:
         assert d.has_safe_speed, d.labels
         v, k = d.speed_mps, d.filter_gain
-        assert syn.speed_min_mps <= v <= d.gain_speed_max_mps and 0 < k <= syn.filter_gain_max
+        assert syn.speed_min_mps <= v <= d.gain_speed_max_mps
+        w_max = d.certified_interval[1] / d.nominal_stiffness_n_per_rad  # the sampled law's limit
+        assert 0 < k * w_max * settings.controller.sample_period_s <= 1.0 + 1e-12
         box = d.certified_interval  # the label interval widened to the tire's secant stiffness
         assert box[0] < d.stiffness_lo_n_per_rad and box[1] == d.stiffness_hi_n_per_rad
         assert cond.l1_condition_margin(vehicle, d.k_m, box, v, k, 9, 9) > 0.0
@@ -129,6 +141,48 @@ def test_no_safe_speed_names_the_l1_condition_when_the_filter_is_too_slow():
     d = synthesize_design(load_vehicle(), (20e3, 120e3), 0.25, settings, ["wide"])
     assert d.speed_mps == 0.0 and d.failed_condition == cond.L1_CONDITION
     assert d.margins["l1_condition"] < 0.0
+
+
+def _l1_bound_setting():
+    """T_s = 1.6 ms: the widest interval's filter gain is held to about 360, and the L1
+    condition, not grip, stops its speed (on a high-friction road)."""
+    settings = load_settings()
+    return dataclasses.replace(settings, controller=dataclasses.replace(
+        settings.controller, sample_period_s=1.6e-3))
+
+
+def test_an_l1_limited_speed_is_the_largest_to_a_64th_of_a_metre_per_second():
+    settings, vehicle = _l1_bound_setting(), load_vehicle()
+    syn = settings.synthesis
+    d = synthesize_design(vehicle, (20e3, 120e3), 0.9, settings, ["wide"])
+    assert d.speed_limited_by == cond.L1_CONDITION
+    k_bar = sample_period_filter_gain_limit(settings, d.certified_interval)
+
+    def margin(v):
+        return cond.l1_condition_margin(vehicle, d.k_m, d.certified_interval, v, k_bar,
+                                        syn.w_grid_points, syn.stiffness_grid_points)
+
+    assert margin(d.speed_mps) >= L1_MARGIN_MIN > margin(d.speed_mps + SPEED_RESOLUTION_MPS)
+    cell = syn.speed_grid_step_mps
+    assert d.speed_mps % cell != 0.0  # resolved inside the grid cell, not at its floor
+
+
+def test_the_filter_gain_rises_to_the_sample_period_limit_where_that_gives_more_speed():
+    """The shipped envelope (sunny to snow, joint gains) at the shipped T_s: its speed at
+    k_bar = 500 is L1-limited; at the sample-period limit it is faster, and the search keeps
+    that design. With T_s set so that the limit is k_bar itself, the search stays at k_bar."""
+    settings, vehicle, conditions = load_settings(), load_vehicle(), load_conditions()
+    envelope = ("sunny", "rain", "snow")
+    fast = synthesize_label_range(vehicle, conditions, envelope, settings)
+    w_max = fast.certified_interval[1] / fast.nominal_stiffness_n_per_rad
+    capped_settings = dataclasses.replace(settings, controller=dataclasses.replace(
+        settings.controller, sample_period_s=1.0 / (settings.synthesis.filter_gain_max * w_max)))
+    capped = synthesize_label_range(vehicle, conditions, envelope, capped_settings)
+    assert capped.certified_interval == fast.certified_interval
+    assert capped.filter_gain <= settings.synthesis.filter_gain_max * (1 + 1e-12)
+    assert fast.filter_gain > settings.synthesis.filter_gain_max
+    assert fast.speed_mps > capped.speed_mps + SPEED_RESOLUTION_MPS
+    assert fast.filter_gain * w_max * settings.controller.sample_period_s <= 1.0 + 1e-12
 
 
 def _lqr_gain(vehicle, c_hat, speed):

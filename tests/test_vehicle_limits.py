@@ -16,7 +16,7 @@ from drake_cert.config import (
 )
 from drake_cert.io import provenance
 from drake_cert.synthesis.design_io import DesignTable, load_design_file, save_design_table
-from drake_cert.synthesis.speed import REFINE_BISECTIONS
+from drake_cert.synthesis.speed import SPEED_RESOLUTION_MPS
 from drake_cert.synthesis.table import synthesize_label_range
 from drake_cert.synthesis.verify import verify_design_table
 
@@ -25,7 +25,7 @@ SETTINGS = load_settings()
 CAR = load_vehicle()
 VAN = load_vehicle(default_path("vehicles/vw_vanagon.yaml"))
 RADIUS = SETTINGS.synthesis.design_radius_m
-RESOLUTION = SETTINGS.synthesis.speed_grid_step_mps / 2**REFINE_BISECTIONS
+RESOLUTION = SPEED_RESOLUTION_MPS
 
 
 @pytest.fixture(scope="module")
