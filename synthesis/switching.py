@@ -417,11 +417,13 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
     fields): the method, the certified decay and average dwell, whether the signal met the
     certificate (``switching_certificate_met``: always for "common" and "none"; for "dwell"
     when the chatter bound at ``tau_a = dwell_time_s`` is at most 1, i.e. consecutive
-    switches at least ``dwell_time_s`` apart), for "dwell" the chatter bound ``N_0`` at
+    switches at least ``dwell_time_s`` apart; never when the designs switched and their L1
+    loops have no common matrix, ``switching_note`` then says so), for "dwell" the chatter bound ``N_0`` at
     ``tau_a = 2 dwell_time_s`` (then the reference loops decay at ``lambda_0 / 2`` at least)
     with the growth factor ``mu^N_0`` it allows, and the L1 reference loops' certificate
     (``loop_switching_decay_per_s``: lambda_z, 0 when there is none)."""
     times = list(switch_times_s)
+    loop_missing = certificate.method != NONE and certificate.loop_lyapunov_matrix is None
     out = {"switching_method": certificate.method,
            "switching_decay_per_s": certificate.decay_rate_per_s,
            "certified_average_dwell_s": certificate.dwell_time_s,
@@ -436,7 +438,15 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
     else:  # common P (or nothing switches): any switching signal is covered
         out.update(chatter_bound_n0=0.0, lyapunov_growth_bound=1.0,
                    switching_certificate_met=True)
+    if loop_missing and times:  # the L1 loops that ran switched with no certificate for them
+        out["switching_certificate_met"] = False
+        out["switching_note"] = LOOP_MISSING_NOTE
     return out
+
+
+LOOP_MISSING_NOTE = ("the state-feedback loops share a certificate but the L1 loops with their "
+                     "filter state share no Lyapunov matrix, so their switching is not certified "
+                     "(docs/design.md 5.6)")
 
 
 # ----------------------------------------------------------------- YAML mapping

@@ -208,8 +208,12 @@ def check_speeds(design: ControllerDesign, speed_min_mps: float) -> np.ndarray:
 def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                    reference_matrix) -> list[str]:
     """The L1 loops' matrix, when stored: for the law of ``settings`` (when known), finite,
-    symmetric, positive definite, and its rate reached at every check point."""
+    symmetric, positive definite, and its rate reached at every check point; a loop decay
+    claimed without a matrix is a failure."""
     if certificate.loop_lyapunov_matrix is None:
+        if certificate.loop_decay_rate_per_s > 0.0:
+            return [f"{name}: claims loop decay {certificate.loop_decay_rate_per_s}/s for the L1 "
+                    "loops but stores no loop matrix that proves it"]
         return []
     law = certificate.loop_law
     if isinstance(settings, Settings) and law != settings.controller.adaptation_law:

@@ -778,6 +778,19 @@ class DriveResult:
     lane_width_m: float
 
 
+def drive_warnings(summary: dict) -> list[str]:
+    """What a drive's summary must warn about beyond the calibration: an attack above the
+    certified budget (no certificate covers it) and switching the certificate does not cover
+    (``switching_note``)."""
+    out = []
+    if not summary.get("attack_within_certified_budget", True):
+        out.append(f"attack budget {summary['attack_eps']:g} exceeds the certified eps "
+                   f"{summary['certified_eps']:g}: no certificate covers it")
+    if summary.get("switching_note"):
+        out.append(summary["switching_note"])
+    return out
+
+
 def _read(logger, context) -> tuple[np.ndarray, np.ndarray]:
     log = logger.FindLog(context)
     return log.sample_times().copy(), log.data().T.copy()
@@ -854,6 +867,7 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
 
         switches = tape.times_s[1:][np.diff(tape.design_index) != 0]
         summary.update(drive_switching_report(built.switching, switches))
+    summary["warnings"] = list(summary.get("warnings") or []) + drive_warnings(summary)
     summary["vehicle"] = dataclasses.asdict(built.vehicle)  # the vehicle that drove (SI units)
     return DriveResult(tape, ticks, summary, route, built.vehicle.lane_width_m)
 

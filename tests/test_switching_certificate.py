@@ -281,6 +281,32 @@ def test_verify_rejects_a_tampered_loop_matrix_and_an_inflated_loop_rate(rtk_fil
     _verify_fails(_edited(rtk_file, tmp_path, inflate), capsys, "the loop matrix proves decay")
 
 
+def test_verify_rejects_a_loop_rate_claimed_without_its_matrix(rtk_file, tmp_path, capsys):
+    def drop(certs, raw):
+        del certs["rtk-like"]["loop_lyapunov_matrix"]  # the rate stays: a claim with no proof
+
+    _verify_fails(_edited(rtk_file, tmp_path, drop), capsys, "stores no loop matrix")
+
+
+def test_a_drive_that_switches_l1_loops_without_a_common_matrix_is_not_reported_certified(
+        certified):
+    from drake_cert.systems.driving import drive_warnings
+
+    from drake_cert.cli.synthesize import format_switching
+
+    cert = _certificate(certified, "rtk-like")
+    with_loop = switching.drive_switching_report(cert, [1.0, 2.0])
+    assert with_loop["switching_certificate_met"] is True and "switching_note" not in with_loop
+    bare = dataclasses.replace(cert, loop_lyapunov_matrix=None, loop_decay_rate_per_s=0.0)
+    assert switching.drive_switching_report(bare, [])["switching_certificate_met"] is True
+    report = switching.drive_switching_report(bare, [1.0, 2.0])
+    assert report["switching_certificate_met"] is False
+    assert report["loop_switching_decay_per_s"] == 0.0
+    assert drive_warnings(report) == [switching.LOOP_MISSING_NOTE]
+    lines = format_switching([bare, cert]).splitlines()
+    assert "NOT certified" in lines[0] and "L1 loops: common matrix" in lines[1]
+
+
 # ------------------------------------------------------------------ file and verify
 
 @pytest.fixture(scope="module")

@@ -79,7 +79,8 @@ def format_table(designs) -> str:
 
 
 def format_switching(certificates) -> str:
-    """One line per preset: the switching certificate's method, decay rate and dwell."""
+    """One line per preset: the switching certificate's method, decay rate and dwell for the
+    state-feedback loops, and whether the L1 loops have a common matrix (docs/design.md 5.6)."""
     lines = []
     for c in certificates:
         if c.method == "none":
@@ -87,8 +88,11 @@ def format_switching(certificates) -> str:
             continue
         what = ("common Lyapunov matrix, any switching rate" if c.method == "common" else
                 f"average dwell {c.dwell_time_s:.3g} s (not enforced by the car)")
-        lines.append(f"switching ({c.family}): {c.method}: {what}; decay "
-                     f"{c.decay_rate_per_s:.3g}/s over {len(c.designs_covered)} designs")
+        loops = (f"L1 loops: common matrix, decay {c.loop_decay_rate_per_s:.3g}/s"
+                 if c.loop_lyapunov_matrix is not None else
+                 "L1 loops: no common matrix, switching among them NOT certified")
+        lines.append(f"switching ({c.family}): state-feedback loops {c.method}: {what}; decay "
+                     f"{c.decay_rate_per_s:.3g}/s over {len(c.designs_covered)} designs; {loops}")
     return "\n".join(lines)
 
 
