@@ -30,18 +30,25 @@ SPEED_BISECTION_TOLERANCE_MPS = 0.25
 
 
 
-def solve_sdp(problem: cp.Problem) -> bool:
-    """Solve ``problem`` with Clarabel; True only when the status is OPTIMAL.
-
-    Solver failures and "may be inaccurate" warnings count as not solved (the status decides).
-    """
+def solve_sdp_status(problem: cp.Problem) -> str:
+    """Solve ``problem`` with Clarabel; return cvxpy's status (``"solver_error"`` when the
+    solver fails). A caller that accepts ``optimal_inaccurate`` must check the solution itself
+    (:func:`drake_cert.synthesis.joint_gains.solve_common_lyapunov_gains` does)."""
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             problem.solve(solver=cp.CLARABEL)
     except cp.error.SolverError:
-        return False
-    return problem.status == cp.OPTIMAL
+        return "solver_error"
+    return str(problem.status)
+
+
+def solve_sdp(problem: cp.Problem) -> bool:
+    """Solve ``problem`` with Clarabel; True only when the status is OPTIMAL.
+
+    Solver failures and "may be inaccurate" warnings count as not solved (the status decides).
+    """
+    return solve_sdp_status(problem) == cp.OPTIMAL
 
 def corner_points(interval, speed_lo_mps: float, speed_hi_mps: float) -> list[tuple[float, float]]:
     """The four (C, V) corners of ``interval x [speed_lo, speed_hi]``."""

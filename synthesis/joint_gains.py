@@ -18,8 +18,10 @@ bounds ``||k_i||^2 <= t_i`` and ``sum t_i`` is minimised, as 5.1 minimises one t
 
 Smaller slip bounds and lower speeds give sub-boxes of ``B_i`` (the image of a sub-box in the
 ``(C, C/V)`` plane lies in the image of the box), so ``k_i`` serves every slip bound the speed
-search tries. Solved with cvxpy + Clarabel; the caller checks the result again on grids (5.5)
-and :mod:`drake_cert.synthesis.switching` recomputes the common certificate from the final gains.
+search tries. Solved with cvxpy + Clarabel (:func:`solve_common_lyapunov_gains`: a solution is
+kept when its matrix proves the decay, whatever the solver's status, and the program is rescaled
+once before giving up); the gains pass the grid check of 5.1, and
+:mod:`drake_cert.synthesis.switching` recomputes the common certificate from the final gains.
 """
 
 import dataclasses
@@ -34,8 +36,9 @@ from drake_cert.synthesis.gains import (
     GRID_CHECK_TOLERANCE,
     closed_loop_spectral_abscissa,
     corner_points,
-    solve_sdp,
+    solve_sdp_status,
 )
+from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 JOINT = "joint"  # one LMI, common Lyapunov matrix (the default)
 SEPARATE = "separate"  # one LMI per interval, each with its own Lyapunov matrix
@@ -67,14 +70,57 @@ def gain_box(interval: tuple[float, float], friction_mu_lo: float,
     return GainBox((lo, float(interval[1])), syn.speed_min_mps, float(top))
 
 
-def common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
-                          settings: Settings) -> list[np.ndarray] | None:
-    """One ``k_i`` (4,) per box, all certified by one ``X = P^-1`` (module docstring) at
-    ``settings.synthesis.decay_rate``; None when Clarabel reports no optimal solution (the
-    joint program is infeasible, or numerically unreliable) or a gain fails the eigenvalue
-    grid check of 5.1 on its box."""
+@dataclasses.dataclass(frozen=True)
+class JointSolve:
+    """What the joint program returned and how it was accepted (the table's provenance).
+
+    ``gains``: one ``k_i`` per box, or None (no certified solution: the table falls back to
+    separate gains). ``status``: Clarabel's status of the solve that was kept (or of the last
+    one tried). ``rescaled``: solved in balanced coordinates (module docstring). ``proved_rate``:
+    the least decay rate (1/s) the returned ``X`` proves over every corner of every box for the
+    returned gains (:func:`corner_rate`), ``nan`` without a solution. ``condition_number``:
+    ``cond X`` of the original coordinates.
+    """
+
+    gains: list[np.ndarray] | None
+    status: str
+    rescaled: bool = False
+    proved_rate: float = float("nan")
+    condition_number: float = float("nan")
+
+    def as_dict(self) -> dict:
+        """Plain mapping for the design file's provenance."""
+        return {"solver_status": self.status, "rescaled": self.rescaled,
+                "accepted": self.gains is not None,
+                "proved_decay_per_s": float(self.proved_rate),
+                "lyapunov_condition_number": float(self.condition_number)}
+
+
+def corner_rate(vehicle: VehicleParams, boxes: list[GainBox], x: np.ndarray,
+                gains: list[np.ndarray]) -> float:
+    """The least decay rate (1/s) that ``P = X^-1`` proves for ``A(C, V) - b(C) k_i`` over the
+    four corners of every box i (:func:`drake_cert.synthesis.lyapunov_rate.certified_rate`;
+    corners suffice, the loop is affine in ``(C, C/V)``), ``-inf`` when ``X`` is not positive
+    definite. The a-posteriori check of a solve, independent of the solver's status."""
+    x = 0.5 * (x + x.T)
+    if not np.all(np.isfinite(x)) or np.linalg.eigvalsh(x).min() <= 0.0:
+        return -np.inf
+    p = np.linalg.inv(x)
+    p = 0.5 * (p + p.T)
+    rate = np.inf
+    for box, k_m in zip(boxes, gains, strict=True):
+        for c, v in corner_points(box.interval, box.speed_lo_mps, box.speed_hi_mps):
+            a, b, _ = lateral_error_dynamics(vehicle, c, v)
+            rate = min(rate, certified_rate(p, a - np.outer(b, k_m)))
+    return float(rate)
+
+
+def _joint_program(vehicle, boxes, settings, scale: np.ndarray):
+    """The joint LMI in coordinates ``z = D s``, ``D = diag(scale)`` (``A -> D A D^-1``,
+    ``b -> D b``); returns the problem, ``X_z`` and the ``Y_z``."""
     syn = settings.synthesis
     eye = np.eye(4)
+    d, d_inv = np.diag(scale), np.diag(1.0 / scale)
     x = cp.Variable((4, 4), symmetric=True)
     constraints = [x >> eye]
     ys, ts = [], []
@@ -84,17 +130,61 @@ def common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
         ts.append(t)
         for c, v in corner_points(box.interval, box.speed_lo_mps, box.speed_hi_mps):
             a, b, _ = lateral_error_dynamics(vehicle, c, v)
-            b = b.reshape(4, 1)
+            a, b = d @ a @ d_inv, (d @ b).reshape(4, 1)
             lyap = a @ x + x @ a.T - b @ y - y.T @ b.T + 2.0 * syn.decay_rate * x
             constraints.append(0.5 * (lyap + lyap.T) << -syn.lmi_margin * eye)
         constraints.append(cp.bmat([[t, y], [y.T, x]]) >> 0)
-    problem = cp.Problem(cp.Minimize(sum(t[0, 0] for t in ts)), constraints)
-    if not solve_sdp(problem) or x.value is None:
-        return None
-    gains = [np.linalg.solve(x.value, y.value.reshape(4)) for y in ys]
+    return cp.Problem(cp.Minimize(sum(t[0, 0] for t in ts)), constraints), x, ys
+
+
+def solve_common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
+                                settings: Settings) -> JointSolve:
+    """The joint program of the module docstring, kept whenever its solution certifies.
+
+    A solve is kept when Clarabel reports it optimal, or optimal but inaccurate and the
+    returned ``X`` still proves the decay rate at every corner for the returned gains
+    (:func:`corner_rate` >= ``decay_rate``: the certificate is the matrix, not the status).
+    When the first solve is kept by neither, the program is solved once more in balanced
+    coordinates ``z = D s``, ``D = diag(X_ii)^-1/2`` from that first solution (the states mix
+    metres and radians; ``cond X`` reaches 10^3 for tall SUVs), and its gains ``k = k_z D``
+    are checked the same way in the original coordinates. A kept gain must also pass the
+    eigenvalue grid check of 5.1 on its box."""
+    first, x = _solve_in(vehicle, boxes, settings, np.ones(4))
+    if first.gains is not None or x is None:
+        return first
+    diag = np.diag(x)
+    if not (np.all(np.isfinite(diag)) and np.all(diag > 0.0)):
+        return first
+    second, _ = _solve_in(vehicle, boxes, settings, 1.0 / np.sqrt(diag))
+    return second if second.gains is not None else first
+
+
+def _solve_in(vehicle, boxes, settings, scale) -> tuple[JointSolve, np.ndarray | None]:
+    """One solve in the coordinates ``z = diag(scale) s``: the result (gains None unless kept,
+    :func:`solve_common_lyapunov_gains`) and ``X`` in the original coordinates (None when the
+    solver returned none)."""
+    syn = settings.synthesis
+    problem, x_z, ys = _joint_program(vehicle, boxes, settings, scale)
+    status = solve_sdp_status(problem)
+    rescaled = not np.all(scale == 1.0)
+    if x_z.value is None or any(y.value is None for y in ys):
+        return JointSolve(None, status, rescaled), None
+    d_inv = np.diag(1.0 / scale)
+    x = d_inv @ x_z.value @ d_inv  # X = D^-1 X_z D^-1
+    gains = [np.linalg.solve(x_z.value, y.value.reshape(4)) * scale for y in ys]  # k_z D
+    rate = corner_rate(vehicle, boxes, x, gains)
+    cond_x = float(np.linalg.cond(0.5 * (x + x.T)))
+    kept = status == cp.OPTIMAL or (status == cp.OPTIMAL_INACCURATE and rate >= syn.decay_rate)
     for box, k_m in zip(boxes, gains, strict=True):  # the grid check of 5.1, outside the solver
         abscissa = closed_loop_spectral_abscissa(vehicle, k_m, box.interval, box.speed_lo_mps,
                                                  box.speed_hi_mps)
-        if abscissa > -syn.decay_rate + GRID_CHECK_TOLERANCE:
-            return None
-    return gains
+        kept = kept and abscissa <= -syn.decay_rate + GRID_CHECK_TOLERANCE
+    return JointSolve(gains if kept else None, status, rescaled, rate, cond_x), x
+
+
+def common_lyapunov_gains(vehicle: VehicleParams, boxes: list[GainBox],
+                          settings: Settings) -> list[np.ndarray] | None:
+    """One ``k_i`` (4,) per box, all certified by one ``X = P^-1`` (module docstring) at
+    ``settings.synthesis.decay_rate``; None when no solve certifies
+    (:func:`solve_common_lyapunov_gains`) or a gain fails the eigenvalue grid check of 5.1."""
+    return solve_common_lyapunov_gains(vehicle, boxes, settings).gains

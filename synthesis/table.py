@@ -21,10 +21,16 @@ from drake_cert.synthesis.conditions import (
 )
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.gains import synthesize_state_feedback
-from drake_cert.synthesis.joint_gains import GAIN_SYNTHESES, JOINT, common_lyapunov_gains, gain_box
+from drake_cert.synthesis.joint_gains import (
+    GAIN_SYNTHESES,
+    JOINT,
+    gain_box,
+    solve_common_lyapunov_gains,
+)
 from drake_cert.synthesis.speed import IntervalEvaluator, search_speed
 
 GAIN_LMI = "gain_lmi"  # failed_condition when no k_m exists for the interval
+JOINT_REPORT = "joint_report"  # DesignCache.joint key: the JointSolve of the joint program
 
 
 def design_label_ranges(conditions: ConditionsTable) -> list[tuple[str, ...]]:
@@ -68,6 +74,13 @@ class DesignCache:
     joint: dict = dataclasses.field(default_factory=dict)
 
 
+def joint_solve_report(cache: DesignCache) -> dict | None:
+    """How the joint program was solved and accepted (solver status, rescaled, the decay rate
+    its matrix proves, cond X) for the design file's provenance; None when it was not run."""
+    solve = cache.joint.get(JOINT_REPORT)
+    return solve.as_dict() if solve is not None else None
+
+
 def joint_design_gains(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
                        cache: DesignCache | None = None) -> dict | None:
     """Every label range's ``(k_m, gain_speed_max_mps)`` from one LMI with a common Lyapunov
@@ -79,13 +92,15 @@ def joint_design_gains(vehicle: VehicleParams, conditions: ConditionsTable, sett
     ranges = design_label_ranges(conditions)
     boxes = {r: gain_box(scaled.hull(r), scaled.least_friction(r), settings) for r in ranges}
     distinct = list(dict.fromkeys(boxes.values()))
-    gains = common_lyapunov_gains(vehicle, distinct, settings) if distinct else []
+    solve = solve_common_lyapunov_gains(vehicle, distinct, settings) if distinct else None
+    gains = solve.gains if solve is not None else []
     out = None
     if gains is not None:
         by_box = {b: (k, b.speed_hi_mps) for b, k in zip(distinct, gains, strict=True)}
         out = {r: by_box[b] for r, b in boxes.items()}
     if cache is not None:
         cache.joint[JOINT] = out
+        cache.joint[JOINT_REPORT] = solve
     return out
 
 
@@ -251,15 +266,17 @@ def synthesize_label_range(vehicle: VehicleParams, conditions: ConditionsTable, 
 
 def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settings: Settings,
                      progress: Callable[[Iterable], Iterable] | None = None,
-                     gains: str = JOINT) -> list[ControllerDesign]:
+                     gains: str = JOINT, cache: DesignCache | None = None
+                     ) -> list[ControllerDesign]:
     """One design per label range (see :func:`design_label_ranges`), in that order.
 
     ``progress`` wraps the iteration over label ranges (e.g. ``tqdm``). The label intervals
     are the table's times ``vehicle.tire_stiffness_scale`` (friction unchanged). ``gains``:
     ``"joint"`` (default; one common Lyapunov matrix for every design, docs/design.md 5.6,
     falling back to ``"separate"`` when that LMI is infeasible) or ``"separate"``.
+    ``cache``: a fresh :class:`DesignCache` to read afterwards (``joint_solve_report``).
     """
-    cache = DesignCache()
+    cache = cache if cache is not None else DesignCache()
     ranges = design_label_ranges(conditions)
     return [synthesize_label_range(vehicle, conditions, labels, settings, cache, gains)
             for labels in (progress(ranges) if progress is not None else ranges)]

@@ -78,6 +78,18 @@ def format_table(designs) -> str:
                      + r[6] for r in rows)
 
 
+def format_joint_solve(report: dict) -> str:
+    """One line: how the joint gain program was solved and whether its solution was kept."""
+    how = "rescaled, " if report["rescaled"] else ""
+    if not report["accepted"]:
+        return (f"joint gains: Clarabel {report['solver_status']} ({how}no certifying solution): "
+                "every range uses its own gain LMI")
+    note = ("" if report["solver_status"] == "optimal" else
+            " (kept: its matrix proves the decay at every corner, docs/design.md 5.6)")
+    return (f"joint gains: Clarabel {report['solver_status']}{note}; {how}matrix proves "
+            f"{report['proved_decay_per_s']:.4g}/s, cond X {report['lyapunov_condition_number']:.3g}")
+
+
 def format_switching(certificates) -> str:
     """One line per preset: the switching certificate's method, decay rate and dwell for the
     state-feedback loops, and whether the L1 loops have a common matrix (docs/design.md 5.6)."""
@@ -140,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
         save_design_table,
         with_switching_certificates,
     )
-    from drake_cert.synthesis.table import synthesize_table
+    from drake_cert.synthesis.table import DesignCache, joint_solve_report, synthesize_table
 
     if not hasattr(args, "loaded"):
         check(args)
@@ -149,7 +161,10 @@ def run(args: argparse.Namespace) -> int:
     def progress(ranges):
         return progress_bar(ranges, desc="synthesize", unit="range", leave=False)
 
-    designs = synthesize_table(vehicle, conditions, settings, progress, gains=args.gains)
+    cache = DesignCache()
+    designs = synthesize_table(vehicle, conditions, settings, progress, gains=args.gains,
+                               cache=cache)
+    joint = joint_solve_report(cache)
     if not any(d.has_safe_speed for d in designs):
         print(format_table(designs))
         print(f"drake-cert synthesize: no design has a safe speed; binding condition: "
@@ -157,6 +172,9 @@ def run(args: argparse.Namespace) -> int:
               "nothing written", file=sys.stderr)
         return 1
     prov = provenance(seed=None)  # deterministic: no seed
+    if joint is not None:
+        prov["joint_gain_solve"] = joint
+        print(format_joint_solve(joint), file=sys.stderr)
     table = with_switching_certificates(DesignTable(designs, vehicle, settings, prov, conditions))
     print(format_switching(table.switching), file=sys.stderr)
     stopped = [d for d in designs if not d.has_safe_speed]
