@@ -14,7 +14,9 @@ curvature > 0 left turn, steering > 0 left, ``psidot_des = V * kappa``.
 
 import dataclasses
 import math
+import os
 import re
+import stat
 import types
 import typing
 from importlib import resources
@@ -556,6 +558,11 @@ def read_yaml_text(filename: str | Path, error: type[Exception] = ConfigError) -
     read into memory) or is not text (a binary file: the first byte that is not UTF-8 and its
     offset)."""
     try:
+        mode = os.stat(filename).st_mode
+        if stat.S_ISFIFO(mode) or stat.S_ISSOCK(mode):  # reading would wait for a writer
+            raise error(f"{filename}: a named pipe or socket, not a file; give a regular file")
+        if stat.S_ISDIR(mode):
+            raise error(f"{filename}: a folder, not a file")
         with open(filename, "rb") as f:
             data = f.read(MAX_INPUT_BYTES + 1)
     except OSError as e:

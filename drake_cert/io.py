@@ -66,6 +66,19 @@ def check_writable(path: str | os.PathLike, option: str = "output") -> Path:
     return path
 
 
+def check_writable_folder(path: str | os.PathLike, option: str = "folder") -> Path:
+    """Raise :class:`ConfigError` unless files can be written in the folder ``path`` (made
+    if missing): it must not be a regular file, and its nearest existing ancestor must be a
+    writable folder (:func:`check_writable`). Called before the work that fills it."""
+    from drake_cert.errors import ConfigError
+
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{option} {path}: is a file; give a folder")
+    check_writable(path / ".drake-cert-probe", option)
+    return path
+
+
 def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
     """Write ``text`` (UTF-8) to ``path`` atomically."""
     return atomic_write_bytes(path, text.encode("utf-8"))

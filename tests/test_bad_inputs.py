@@ -208,6 +208,40 @@ def test_a_sample_period_of_one_second_is_refused_naming_the_unit(tmp_path, caps
     assert "controller.sample_period_s = 1 s" in line
 
 
+
+def test_a_named_pipe_as_the_vehicle_file_is_refused_without_waiting(tmp_path, capsys):
+    import os
+
+    pipe = tmp_path / "vehicle.yaml"
+    os.mkfifo(pipe)  # reading it would wait for a writer forever
+    err = one_line_exit_2(capsys, ["synthesize", "--vehicle", str(pipe)])
+    assert "a named pipe or socket, not a file" in err
+    assert "a folder, not a file" in one_line_exit_2(capsys, ["verify", str(tmp_path)])
+
+
+@pytest.mark.parametrize("argv", [["synthesize", "--vehicle", ""],
+                                  ["verify", "designs.yaml", "--vehicle", " "],
+                                  ["drive", "--scenario", ""], ["drive", "--designs", ""],
+                                  [*CERTIFY, "--sigma", "1", "--models", ""]])
+def test_an_empty_option_value_is_refused_not_taken_for_the_default(argv, capsys):
+    """``--vehicle "$CAR"`` with CAR unset must not synthesize the shipped car's table."""
+    err = one_line_exit_2(capsys, argv)
+    assert f"argument {argv[-2]}: empty value" in err
+
+
+def test_drive_compare_with_a_pipeline_is_refused(capsys):
+    err = one_line_exit_2(capsys, ["drive", "--compare", "--pipeline", "base"])
+    assert "--compare drives both pipelines" in err
+
+
+def test_train_models_naming_a_file_is_refused_before_any_training(regular_file, capsys):
+    start = time.perf_counter()
+    err = one_line_exit_2(capsys, ["train", "--models", str(regular_file), "--preset",
+                                   "rtk-like", "--sigma", "1"])
+    assert "is a file; give a folder" in err
+    assert time.perf_counter() - start < 10.0  # refused at the check, not after an epoch
+
+
 # --------------------------------------------------------------------------- certify inputs
 
 def test_certify_rejects_a_frame_size_other_than_the_models(models, capsys):

@@ -120,6 +120,24 @@ def build_parser(command: str | None) -> argparse.ArgumentParser:
     return parser
 
 
+def refuse_empty_values(parser: argparse.ArgumentParser, args: argparse.Namespace) -> None:
+    """One line, exit 2, for an option given an empty value (``--vehicle ''``, often an unset
+    shell variable): no option of any command means anything by it, and taking it for "left
+    out" would run on the shipped files instead of the user's."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction))
+    command_parser = sub.choices[args.command]
+    for action in command_parser._actions:
+        if not action.option_strings:
+            continue
+        value = getattr(args, action.dest, None)
+        values = value if isinstance(value, list) else [value]
+        if any(isinstance(v, str) and not v.strip() for v in values):
+            from drake_cert.errors import ConfigError
+
+            raise ConfigError(f"argument {action.option_strings[-1]}: empty value (an unset "
+                              "shell variable?); give one or leave the option out")
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     command = next((a for a in argv if not a.startswith("-")), None)
@@ -129,6 +147,7 @@ def main(argv: list[str] | None = None) -> int:
         if args.command is None:
             parser.print_help(sys.stderr)
             return 2
+        refuse_empty_values(parser, args)
         module = importlib.import_module(f"drake_cert.cli.{args.command}")
         with interrupt_deferred():
             if hasattr(module, "check"):

@@ -66,12 +66,15 @@ def check(args) -> None:
     """Options, output paths, ``--vehicle`` and the scenario file, before torch and cvxpy are
     imported (``cli.main`` runs this first; the scenario's schema imports pydrake)."""
     from drake_cert.config import load_vehicle
+    from drake_cert.errors import ConfigError
 
     _check_outputs(args)
+    if args.compare and args.pipeline is not None:
+        raise ConfigError(f"--compare drives both pipelines; leave out --pipeline "
+                          f"{args.pipeline} (or leave out --compare)")
     if args.vehicle:
         load_vehicle(args.vehicle)
     from drake_cert.config import load_conditions
-    from drake_cert.errors import ConfigError
     from drake_cert.systems.scenario import load_scenario, scenario_path
 
     scenario = load_scenario(args.scenario)

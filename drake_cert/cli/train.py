@@ -77,6 +77,17 @@ def configure(parser) -> None:
     parser.add_argument("--json", action="store_true", help="print the metrics as JSON on stdout")
 
 
+def check(args) -> None:
+    """The model folder and the conditions file, before torch is imported (``cli.main`` runs
+    this first): a file where the folder should be costs no training."""
+    from drake_cert.config import load_conditions
+    from drake_cert.io import check_writable_folder
+
+    if args.models is not None:
+        check_writable_folder(args.models, "--models")
+    load_conditions(args.conditions)
+
+
 def default_epochs(train_frames: int) -> int:
     """Epochs so that a model sees about FRAME_PASSES frames, at least MIN_EPOCHS."""
     return max(MIN_EPOCHS, math.ceil(FRAME_PASSES / max(1, train_frames)))
