@@ -243,6 +243,29 @@ class _Geometry:
     X: torch.Tensor  # ground lateral position (x - x_v) / (y - h) + lateral offset
     pixel_x: torch.Tensor  # ground X units per pixel
 
+    @property
+    def n(self) -> int:
+        """Frames in the batch."""
+        return self.X.shape[0]
+
+
+@dataclasses.dataclass(frozen=True)
+class _SurfaceColours:
+    """Colour layers [n, 3, size, size] that the weather passes (wet road, snow) repaint."""
+
+    road: torch.Tensor
+    verge: torch.Tensor
+    tree_col: torch.Tensor  # tree line colour
+
+
+@dataclasses.dataclass(frozen=True)
+class _Textures:
+    """Noise textures [n, size, size] drawn once and reused by the snow layer."""
+
+    fine: torch.Tensor  # fine road grain
+    verge_tex: torch.Tensor
+    tree_tex: torch.Tensor
+
 
 def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
                   generator: torch.Generator, size: int = 64,
@@ -264,10 +287,11 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
     if style.shadows:
         road, verge = _tree_shadows(road, verge, geo, n, g)
     if style.wetness[1] > 0:
-        road = _wet_road(road, lerp(style.wetness, s), geo, low, zenith, n, g)
+        road = _wet_road(road, lerp(style.wetness, s), geo, low, zenith, g)
     if style.snow_cover[1] > 0:
-        road, verge, tree_col = _snow_cover(style, s, road, verge, tree_col, geo,
-                                            fine, verge_tex, tree_tex, n, g)
+        snowed = _snow_cover(style, s, _SurfaceColours(road, verge, tree_col),
+                             _Textures(fine, verge_tex, tree_tex), geo, g)
+        road, verge, tree_col = snowed.road, snowed.verge, snowed.tree_col
     img = _mix(verge, road, on_road[:, None])
     img = torch.where(geo.ground[:, None] > 0, img,
                       torch.where(trees[:, None] > 0, tree_col, sky))
@@ -345,9 +369,9 @@ def _verge_and_surface(style: ConditionStyle, s: torch.Tensor, geo: _Geometry, n
         base = _rgb(0.34, 0.34, 0.36) * (1 + 0.06 * coarse[:, None])
         road = base * (1 + (3 * grain_amp * near * fine)[:, None])
     elif style.surface == "cobblestone":
-        road = _cobblestones(X, Z, s, grain_amp * near, fine, n, g)
+        road = _cobblestones(geo, s, grain_amp * near, fine, g)
     elif style.surface == "sand":
-        road = _sand(X, Z, s, grain_amp * near, fine, coarse, n, g)
+        road = _sand(geo, s, grain_amp * near, fine, coarse, g)
         on_road = ((geo.road_half - X.abs() + 0.15 * coarse) / (3 * pixel_x) + 0.5
                    ).clamp(0.0, 1.0)
     else:
@@ -379,9 +403,10 @@ def _tree_shadows(road, verge, geo: _Geometry, n: int, g: torch.Generator):
     return road * (1 - 0.55 * shadow[:, None]), verge * (1 - 0.55 * shadow[:, None])
 
 
-def _wet_road(road, wet: torch.Tensor, geo: _Geometry, low, zenith, n: int,
+def _wet_road(road, wet: torch.Tensor, geo: _Geometry, low, zenith,
               g: torch.Generator) -> torch.Tensor:
     """Wet road (wetness ``wet`` [n]): darker, reflects the mirrored sky, puddles when very wet."""
+    n = geo.n
     mirror_h = ((geo.y - geo.horizon) / geo.horizon).clamp(0.0, 1.0)
     mirrored = _mix(low, zenith, mirror_h[:, None].sqrt())
     fresnel = 0.25 + 0.75 * torch.exp(-geo.depth_row * 5)
@@ -393,10 +418,12 @@ def _wet_road(road, wet: torch.Tensor, geo: _Geometry, low, zenith, n: int,
     return _mix(road, mirrored * 0.8, reflect)
 
 
-def _snow_cover(style: ConditionStyle, s, road, verge, tree_col, geo: _Geometry, fine,
-                verge_tex, tree_tex, n: int, g: torch.Generator):
+def _snow_cover(style: ConditionStyle, s, colours: _SurfaceColours, textures: _Textures,
+                geo: _Geometry, g: torch.Generator) -> _SurfaceColours:
     """Snow: verge white, road partly covered except in the tyre tracks, snow on the trees."""
-    X = geo.X
+    X, n = geo.X, geo.n
+    road, verge, tree_col = colours.road, colours.verge, colours.tree_col
+    fine, verge_tex, tree_tex = textures.fine, textures.verge_tex, textures.tree_tex
     cover = lerp(style.snow_cover, s)
     snow_col = _rgb(0.9, 0.92, 0.96)
     drift = sample_periodic(fractal_noise(n, g, beta=1.1), X / 2, geo.Z / 6)
@@ -407,7 +434,7 @@ def _snow_cover(style: ConditionStyle, s, road, verge, tree_col, geo: _Geometry,
     verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
                  _col(lerp(style.verge_snow, s)))
     tree_col = _mix(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
-    return road, verge, tree_col
+    return _SurfaceColours(road, verge, tree_col)
 
 
 def _fog(img, fog: torch.Tensor, geo: _Geometry, low) -> torch.Tensor:
@@ -440,8 +467,9 @@ def _precipitation(img, style: ConditionStyle, s, size: int, n: int,
     return img
 
 
-def _cobblestones(X, Z, s, amp, fine, n, g) -> torch.Tensor:
+def _cobblestones(geo: _Geometry, s, amp, fine, g) -> torch.Tensor:
     """Cobblestones in ground coordinates: staggered rows, dark joints, domed stones."""
+    X, Z, n = geo.X, geo.Z, geo.n
     size_m = _uniform(n, 0.18, 0.26, g)[:, None, None]
     gap = (0.025 + 0.04 * s)[:, None, None]  # joints widen with severity (worn, loose stones)
     row = torch.floor(Z / size_m)
@@ -459,8 +487,9 @@ def _cobblestones(X, Z, s, amp, fine, n, g) -> torch.Tensor:
     return _rgb(0.44, 0.42, 0.4) * lum[:, None]
 
 
-def _sand(X, Z, s, amp, fine, coarse, n, g) -> torch.Tensor:
+def _sand(geo: _Geometry, s, amp, fine, coarse, g) -> torch.Tensor:
     """Sand track: wind ripples across the road (amplitude grows with severity), fine grain."""
+    X, Z, n = geo.X, geo.Z, geo.n
     wavelength = _uniform(n, 0.25, 0.4, g)[:, None, None]
     ripple_amp = (0.04 + 0.1 * s)[:, None, None]
     ripples = torch.sin(2 * math.pi * (Z / wavelength + 0.6 * coarse + 0.3 * X))
