@@ -16,6 +16,7 @@ from drake_cert.perception.models import (
 from drake_cert.perception.probe import mean_colour_probe_accuracy
 from drake_cert.perception.training import (
     TrainConfig,
+    TrainRun,
     consistency_config,
     consistency_loss,
     evaluate_accuracy,
@@ -131,12 +132,12 @@ def test_training_is_deterministic_and_resumes_from_its_checkpoint(tmp_path):
 
     ckpt = tmp_path / "model.pt.ckpt"
     with pytest.raises(KeyboardInterrupt):
-        train_classifier(train, sigma=0.25, seed=7, config=cfg, checkpoint=ckpt,
-                         on_epoch_end=interrupt)
+        train_classifier(train, sigma=0.25, seed=7, config=cfg,
+                         run=TrainRun(checkpoint=ckpt, on_epoch_end=interrupt))
     assert ckpt.exists()
     epochs_run = []
-    resumed, _ = train_classifier(train, sigma=0.25, seed=7, config=cfg, checkpoint=ckpt,
-                                  on_epoch_end=epochs_run.append)
+    resumed, _ = train_classifier(train, sigma=0.25, seed=7, config=cfg,
+                                  run=TrainRun(checkpoint=ckpt, on_epoch_end=epochs_run.append))
     assert epochs_run == [2]  # only the missing epoch ran
     for a, b in zip(straight.state_dict().values(), resumed.state_dict().values(), strict=True):
         assert torch.equal(a, b)

@@ -231,13 +231,13 @@ def _require_classifier(preset: str, sigma: float, models) -> Path:
 
 def _fit_classifier(train, test, sigma: float, args, ckpt: Path, name: str):
     """Train the noise-augmented classifier; returns (model, train metrics, test metrics)."""
-    from drake_cert.perception.training import evaluate_accuracy, train_classifier
+    from drake_cert.perception.training import TrainRun, evaluate_accuracy, train_classifier
 
     epochs = args.epochs or default_epochs(len(train))
+    run = TrainRun(progress=True, description=name, device=getattr(args, "device", "cpu"),
+                   checkpoint=ckpt)
     model, train_metrics = train_classifier(train, sigma=sigma, epochs=epochs, seed=args.seed,
-                                            config=train_config(args), checkpoint=ckpt,
-                                            progress=True, description=name,
-                                            device=getattr(args, "device", "cpu"))
+                                            config=train_config(args), run=run)
     test_metrics = {"test_accuracy_clean": evaluate_accuracy(model, test),
                     "test_accuracy_noisy": evaluate_accuracy(model, test, sigma=sigma,
                                                              seed=args.seed),
@@ -253,6 +253,7 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     classifier file and SHA-256 it was fitted on / initialised from)."""
     from drake_cert.perception.models import file_sha256, load_model
     from drake_cert.perception.training import (
+        TrainRun,
         evaluate_mae,
         evaluate_mse,
         fit_regressor,
@@ -269,8 +270,9 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     else:
         epochs = args.epochs or default_epochs(len(train))
         model, train_metrics = train_regressor_end_to_end(
-            train, sigma=sigma, epochs=epochs, seed=args.seed, init=classifier, progress=True,
-            description=name, device=getattr(args, "device", "cpu"))
+            train, sigma=sigma, epochs=epochs, seed=args.seed, init=classifier,
+            run=TrainRun(progress=True, description=name,
+                         device=getattr(args, "device", "cpu")))
         extra = {"regressor": "end_to_end", "init_file": cpath.name, "init_sha256": sha,
                  "training": {"method": "huber_end_to_end"}}
     test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),

@@ -65,6 +65,20 @@ class TrainConfig:
 TRAINING_METHODS = ("gaussian", "consistency")
 
 
+@dataclasses.dataclass(frozen=True)
+class TrainRun:
+    """How a training run is carried out, not what it learns (none of it is in the weights).
+
+    ``checkpoint`` and ``on_epoch_end`` apply to :func:`train_classifier` only.
+    """
+
+    progress: bool = False  # per-epoch lines and a progress bar on stderr
+    description: str = "train"  # prefix of those lines
+    device: str = "cpu"  # where the model trains ("cpu" or "cuda"); streams stay on the CPU
+    checkpoint: str | Path | None = None  # per-epoch checkpoint file (resumed if it matches)
+    on_epoch_end: object = None  # callable(epoch counted from 1), after the epoch's checkpoint
+
+
 def check_training_method(config: TrainConfig) -> None:
     """ConfigError naming the method or the parameter of it that is not valid."""
     if config.method not in TRAINING_METHODS:
@@ -139,23 +153,26 @@ def add_gaussian_noise(x: torch.Tensor, sigma: float, generator: torch.Generator
 
 def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
                      seed: int = 0, config: TrainConfig | None = None,
-                     checkpoint: str | Path | None = None, progress: bool = False,
-                     description: str = "train", on_epoch_end=None,
-                     device: str = "cpu") -> tuple[SmallResNet, dict]:
+                     run: TrainRun | None = None) -> tuple[SmallResNet, dict]:
     """Train a :class:`SmallResNet` on ``train_set`` under Gaussian noise at ``sigma`` with the
     configuration's method (gaussian augmentation or consistency regularization).
 
-    ``device``: where the model trains ("cpu" or "cuda"); the random streams are the CPU's
-    either way and the returned model is on the CPU.
+    ``run`` (:class:`TrainRun`, default: quiet, on the CPU, no checkpoint): ``run.device`` is
+    where the model trains ("cpu" or "cuda"); the random streams are the CPU's either way and
+    the returned model is on the CPU.
 
-    ``checkpoint``: a file written atomically after every epoch; if it exists (same
-    configuration and data size) training resumes after its last epoch. ``on_epoch_end(epoch)``
-    is called after each epoch's checkpoint (epoch counted from 1). Returns the model
+    ``run.checkpoint``: a file written atomically after every epoch; if it exists (same
+    configuration and data size) training resumes after its last epoch.
+    ``run.on_epoch_end(epoch)`` is called after each epoch's checkpoint (epoch counted from
+    1). Returns the model
     (eval mode) and metrics: final-epoch training loss and accuracy (on noisy frames),
     epochs, steps, seconds.
     """
     import time
 
+    run = run or TrainRun()
+    checkpoint, device = run.checkpoint, run.device
+    progress, description = run.progress, run.description
     cfg = config or TrainConfig()
     if epochs is not None:
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
@@ -170,13 +187,11 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
     start_epoch, seconds, history = 0, 0.0, []
     if checkpoint is not None and Path(checkpoint).exists():
         start_epoch, seconds, history = _resume(checkpoint, signature, model, optimizer,
-                                                progress=progress, description=description,
-                                                epochs=cfg.epochs)
+                                                run=run, epochs=cfg.epochs)
     for epoch in range(start_epoch, cfg.epochs):
         t0 = time.perf_counter()
         loss, accuracy = train_epoch(model, optimizer, train_set, sigma=sigma, seed=seed,
-                                     epoch=epoch, config=cfg, progress=progress,
-                                     description=description, device=device)
+                                     epoch=epoch, config=cfg, run=run)
         seconds += time.perf_counter() - t0
         history.append({"epoch": epoch + 1, "loss": loss, "accuracy": accuracy})
         if progress:
@@ -188,8 +203,8 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
                         "history": history, "model": _to_cpu(model.state_dict()),
                         "optimizer": _to_cpu(optimizer.state_dict())}, buf)
             atomic_write_bytes(checkpoint, buf.getvalue())
-        if on_epoch_end is not None:
-            on_epoch_end(epoch + 1)
+        if run.on_epoch_end is not None:
+            run.on_epoch_end(epoch + 1)
     model = model.cpu().eval()
     last = history[-1] if history else {"loss": math.nan, "accuracy": math.nan}
     metrics = {"train_loss": last["loss"], "train_accuracy": last["accuracy"],
@@ -219,12 +234,13 @@ def make_optimizer(model: nn.Module, config: TrainConfig) -> torch.optim.SGD:
                            lr=config.learning_rate, momentum=config.momentum, nesterov=True)
 
 
-def _resume(checkpoint, signature: dict, model, optimizer, *, progress: bool,
-            description: str, epochs: int) -> tuple[int, float, list]:
+def _resume(checkpoint, signature: dict, model, optimizer, *, run: TrainRun,
+            epochs: int) -> tuple[int, float, list]:
     """Load a per-epoch checkpoint of the same run into model and optimizer.
 
     Returns (epochs done, seconds spent, history); (0, 0.0, []) when the file is for another run.
     """
+    progress, description = run.progress, run.description
     state = torch.load(checkpoint, map_location="cpu", weights_only=True)
     if state.get("signature") != signature:
         if progress:
@@ -240,12 +256,15 @@ def _resume(checkpoint, signature: dict, model, optimizer, *, progress: bool,
 
 
 def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, sigma: float, seed: int,
-                epoch: int, config: TrainConfig, progress: bool = False,
-                description: str = "train", device: str = "cpu") -> tuple[float, float]:
+                epoch: int, config: TrainConfig,
+                run: TrainRun | None = None) -> tuple[float, float]:
     """One epoch (0-based ``epoch``) of noise-trained SGD with the configuration's method; its
     order, flips and noise come from :func:`epoch_generator` (seed, epoch). With m copies
     (consistency) each step draws the m copies' noise of its batch one copy after another.
+    ``run``: progress bar, description and device (:class:`TrainRun`; checkpoint unused).
     Returns mean loss and accuracy on noisy frames (all copies)."""
+    run = run or TrainRun()
+    progress, description, device = run.progress, run.description, run.device
     cfg = config
     n = len(train_set)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -362,9 +381,8 @@ def evaluate_mae(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
 
 def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
                                seed: int = 0, config: TrainConfig | None = None,
-                               init: SmallResNet | None = None, progress: bool = False,
-                               description: str = "train regressor",
-                               device: str = "cpu") -> tuple[SmallResNet, dict]:
+                               init: SmallResNet | None = None,
+                               run: TrainRun | None = None) -> tuple[SmallResNet, dict]:
     """A stiffness regressor trained end to end under Gaussian noise (DESIGN 3.2).
 
     The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
@@ -375,7 +393,9 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     classifier's schedule (:class:`TrainConfig`, :func:`epoch_generator` streams). After
     training the output layer is rescaled to N/rad, so ``model(x)`` is [B, 1] stiffness in
     N/rad, as :class:`~drake_cert.certification.regressor.MedianSmoothedRegressor` expects.
-    ``device``: where it trains (streams drawn on the CPU; the model is returned on the CPU).
+    ``run`` (:class:`TrainRun`, default: quiet, described "train regressor", on the CPU):
+    ``run.device`` is where it trains (streams drawn on the CPU; the model is returned on the
+    CPU); it takes no checkpoint.
     ``save_model`` stores it like a classifier with one output (``num_classes`` 1).
     Returns the model (eval mode) and metrics: final-epoch training MSE in (N/rad)^2, seconds.
     """
@@ -383,6 +403,10 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
 
     if torch.isnan(train_set.stiffness_n_per_rad).any():
         raise ValueError("train_regressor_end_to_end needs the true stiffness of every frame")
+    run = run or TrainRun(description="train regressor")
+    if run.checkpoint is not None or run.on_epoch_end is not None:
+        raise ValueError("train_regressor_end_to_end takes no checkpoint or on_epoch_end")
+    progress, description, device = run.progress, run.description, run.device
     cfg = config or TrainConfig()
     if epochs is not None:
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
