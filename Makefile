@@ -7,12 +7,12 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: run test test-slow bench lint notebooks clean
+.PHONY: run test test-slow bench lint notebooks docs clean
 
 $(STAMP): pyproject.toml constraints.txt
 	$(PY) -m venv $(VENV)
 	$(BIN)/pip install --quiet --upgrade pip
-	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray,onnx]'
+	$(BIN)/pip install --quiet -c constraints.txt -e '.[dev,ray,onnx,docs]'
 	touch $(STAMP)
 
 run: $(STAMP)
@@ -37,8 +37,13 @@ bench: $(STAMP)
 notebooks: $(STAMP)
 	$(BIN)/python notebooks/execute.py
 
+# The documentation site (mkdocs + mkdocstrings, API reference from the docstrings) in site/;
+# strict: a broken link or reference fails the build. tests/test_docs_site.py builds it too.
+docs: $(STAMP)
+	$(BIN)/mkdocs build --strict
+
 lint: $(STAMP)
 	$(BIN)/ruff check .
 
 clean:
-	rm -rf $(VENV) results
+	rm -rf $(VENV) results site

@@ -1,10 +1,10 @@
 """Convergence of the piecewise-constant law in its sample period T_s (DESIGN 4).
 
 For two designs of the shipped table (joint gains, as the car drives them: heavy rain, a narrow
-filter, and the weather envelope, whose k w_max T_s is the largest), simulate 20 s on a curve of the design radius at the
-design speed with the true stiffness at both interval ends, halving T_s; print peak |e1| and
-the final offset, and the change from the previous T_s. The default T_s is justified when
-its peak |e1| is within a small fraction of the finest one.
+filter, and the weather envelope, whose k w_max T_s is the largest), simulate 20 s on a curve of
+the design radius at the design speed with the true stiffness at both interval ends, halving
+T_s; print peak |e1| and the final offset, and the change from the previous T_s. The default
+T_s is justified when its peak |e1| is within a small fraction of the finest one.
 
 Run: ``.venv/bin/python benchmarks/bench_sample_period.py [--plant nonlinear]``
 (default plant: ``linear_sampled``, the exact discretisation; ``nonlinear`` is slower).

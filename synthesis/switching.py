@@ -418,10 +418,11 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
     certificate (``switching_certificate_met``: always for "common" and "none"; for "dwell"
     when the chatter bound at ``tau_a = dwell_time_s`` is at most 1, i.e. consecutive
     switches at least ``dwell_time_s`` apart; never when the designs switched and their L1
-    loops have no common matrix, ``switching_note`` then says so), for "dwell" the chatter bound ``N_0`` at
-    ``tau_a = 2 dwell_time_s`` (then the reference loops decay at ``lambda_0 / 2`` at least)
-    with the growth factor ``mu^N_0`` it allows, and the L1 reference loops' certificate
-    (``loop_switching_decay_per_s``: lambda_z, 0 when there is none)."""
+    loops have no common matrix, ``switching_note`` then says so), for "dwell" the chatter
+    bound ``N_0`` at ``tau_a = 2 dwell_time_s`` (then the reference loops decay at
+    ``lambda_0 / 2`` at least) with the growth factor ``mu^N_0`` it allows, and the L1
+    reference loops' certificate (``loop_switching_decay_per_s``: lambda_z, 0 when there is
+    none)."""
     times = list(switch_times_s)
     loop_missing = certificate.method != NONE and certificate.loop_lyapunov_matrix is None
     out = {"switching_method": certificate.method,

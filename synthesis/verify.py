@@ -540,9 +540,10 @@ def _consistency_failures(design, settings, conditions) -> list[tuple[str, str]]
     if design.certified_law == "piecewise_constant":
         t_s = settings.controller.sample_period_s
         if not 0.0 < design.filter_gain * w_max * t_s <= 1.0 + 1e-12:
+            product = design.filter_gain * w_max * t_s
             out.append((CONSISTENCY, f"filter gain {design.filter_gain:g} breaks the sample-period "
-                                     f"limit k w_max T_s <= 1 ({design.filter_gain * w_max * t_s:.4g}"
-                                     f" with w_max {w_max:.4g}, T_s {t_s:g} s)"))
+                                     f"limit k w_max T_s <= 1 ({product:.4g} with w_max "
+                                     f"{w_max:.4g}, T_s {t_s:g} s)"))
     elif not 0.0 < design.filter_gain <= syn.filter_gain_max:
         out.append((CONSISTENCY, f"filter gain {design.filter_gain} not in (0, filter_gain_max "
                                  f"{syn.filter_gain_max:g}]"))

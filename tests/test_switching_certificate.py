@@ -290,9 +290,8 @@ def test_verify_rejects_a_loop_rate_claimed_without_its_matrix(rtk_file, tmp_pat
 
 def test_a_drive_that_switches_l1_loops_without_a_common_matrix_is_not_reported_certified(
         certified):
-    from drake_cert.systems.driving import drive_warnings
-
     from drake_cert.cli.synthesize import format_switching
+    from drake_cert.systems.driving import drive_warnings
 
     cert = _certificate(certified, "rtk-like")
     with_loop = switching.drive_switching_report(cert, [1.0, 2.0])

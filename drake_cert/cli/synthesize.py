@@ -86,8 +86,9 @@ def format_joint_solve(report: dict) -> str:
                 "every range uses its own gain LMI")
     note = ("" if report["solver_status"] == "optimal" else
             " (kept: its matrix proves the decay at every corner, docs/design.md 5.6)")
+    cond_x = report["lyapunov_condition_number"]
     return (f"joint gains: Clarabel {report['solver_status']}{note}; {how}matrix proves "
-            f"{report['proved_decay_per_s']:.4g}/s, cond X {report['lyapunov_condition_number']:.3g}")
+            f"{report['proved_decay_per_s']:.4g}/s, cond X {cond_x:.3g}")
 
 
 def format_switching(certificates) -> str:
