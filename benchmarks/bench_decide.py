@@ -30,6 +30,7 @@ from drake_cert.certification.backends import evaluated_model, resolve_backend
 from drake_cert.certification.classifier import SmoothedClassifier
 from drake_cert.certification.intervals import candidate_ranges, runtime_classification_interval
 from drake_cert.certification.sampler import resolve_precision, with_precision
+from drake_cert.certification.statistics import SequentialOptions
 from drake_cert.config import load_conditions
 from drake_cert.perception.datasets import load_split
 from drake_cert.perception.models import load_model
@@ -76,8 +77,9 @@ def main() -> None:
                 select = "select" in m
                 d = g.decide(x, args.eps, args.alpha, args.n, args.batch_size,
                              (lambda a: [c for c in ranges if a in c]) if select else ranges,
-                             seed=i, bound="mixture" if "mixture" in m else "looks",
-                             selection_n=30 if select else 0, selection_seed=10**6 + i)
+                             seed=i, options=SequentialOptions(
+                                 bound="mixture" if "mixture" in m else "looks",
+                                 selection_n=30 if select else 0, selection_seed=10**6 + i))
                 samples, certified = d.samples, d.certified
                 rng = tuple(labels[k] for k in d.labels) if certified else tuple(labels)
             out[m]["seconds"] += time.perf_counter() - start

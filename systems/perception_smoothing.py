@@ -51,7 +51,11 @@ from drake_cert.certification.conformal import (
 from drake_cert.certification.regressor import MedianDecision, MedianSmoothedRegressor
 from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
-from drake_cert.certification.statistics import look_plan, percentile_bound_indices
+from drake_cert.certification.statistics import (
+    SequentialOptions,
+    look_plan,
+    percentile_bound_indices,
+)
 from drake_cert.errors import CertificationError, ConfigError
 from drake_cert.systems.camera import CameraFrame
 from drake_cert.systems.scenario import CameraSettings, PerceptionSettings
@@ -261,7 +265,8 @@ class PerceptionSmoothing(LeafSystem):
                         ranges = _holding(ranges)
                     d = self._smooth.decide(
                         x, self.eps, alpha, self.n, self.batch_size, ranges,
-                        seed=seed, selection_n=self.n0, selection_seed=selection_seed)
+                        seed=seed, options=SequentialOptions(selection_n=self.n0,
+                                                             selection_seed=selection_seed))
                     return dataclasses.replace(base, base_label=base_label, decision=d,
                                                samples=d.samples)
                 cert = self._smooth.certify(x, self.n0, self.n, alpha, self.batch_size,

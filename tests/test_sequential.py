@@ -17,7 +17,11 @@ from scipy.stats import binom, norm
 
 from drake_cert.certification.classifier import SmoothedClassifier, sequential_radius
 from drake_cert.certification.regressor import MedianSmoothedRegressor
-from drake_cert.certification.statistics import beta_mixture_bounds, look_plan
+from drake_cert.certification.statistics import (
+    SequentialOptions,
+    beta_mixture_bounds,
+    look_plan,
+)
 from drake_cert.errors import CertificationError
 
 SIGMA, EPS = 0.25, 0.25
@@ -47,7 +51,8 @@ def two_class(margin):
 
 def share_that_certify(margin, alpha, trials, n_max=1000, bound="looks"):
     g = two_class(margin)
-    return sum(g.decide(FRAME, EPS, alpha, n_max, 1000, seed=s, bound=bound).certified
+    return sum(g.decide(FRAME, EPS, alpha, n_max, 1000, seed=s,
+                        options=SequentialOptions(bound=bound)).certified
                for s in range(trials))
 
 
@@ -64,7 +69,8 @@ def test_type_one_error_is_at_most_alpha_when_the_true_radius_is_just_below_eps(
 @pytest.mark.parametrize("bound", ["looks", "mixture"])
 def test_a_clear_frame_is_decided_in_few_samples(bound):
     g = two_class(2 * EPS)  # true radius 2 eps: p_A = Phi(2) = 0.977
-    runs = [g.decide(FRAME, EPS, 0.001, 1100, 1000, seed=s, bound=bound) for s in range(200)]
+    runs = [g.decide(FRAME, EPS, 0.001, 1100, 1000, seed=s,
+                     options=SequentialOptions(bound=bound)) for s in range(200)]
     assert all(r.certified and r.labels == (0,) for r in runs)
     assert np.mean([r.samples for r in runs]) < 200
     assert all(r.radius > EPS and r.reason == "certified" for r in runs)
@@ -124,7 +130,8 @@ def test_fixed_ranges_need_no_top_label_and_certify_through_their_best_label():
 
 def test_selection_samples_are_counted_and_come_from_their_own_stream():
     g = two_class(2 * EPS)
-    a = g.decide(FRAME, EPS, 0.001, 1000, 1000, seed=1, selection_n=16, selection_seed=9)
+    a = g.decide(FRAME, EPS, 0.001, 1000, 1000, seed=1,
+                 options=SequentialOptions(selection_n=16, selection_seed=9))
     b = g.decide(FRAME, EPS, 0.001, 1000, 1000, seed=1)
     assert a.selection_samples == 16 and a.samples == b.samples + 16
     assert (a.counts == b.counts).all()  # the estimation stream is the same
@@ -205,15 +212,17 @@ def test_looks_are_fixed_in_advance_and_split_alpha_over_the_certifying_ones():
     # The first certifying look is the fewest unanimous votes that can certify at that level.
     assert plan.level ** (1 / 53) > p0 >= plan.level ** (1 / 52)
     # A large n_min leaves room for futility-only looks, which spend no alpha.
-    far = look_plan(20_000, 0.001, 1, threshold=norm.cdf(2.5), first_look=32)
+    far = look_plan(20_000, 0.001, 1, threshold=norm.cdf(2.5),
+                    options=SequentialOptions(first_look=32))
     early = [n for n in far.looks if n < far.certify_from]
     assert early and far.bounds(early[0], early[0])[0] == 0.0  # cannot certify there
     assert far.level == pytest.approx(0.001 / (len(far.looks) - len(early)))
-    mixture = look_plan(1000, 0.001, 2, bound="mixture", first_look=32, batch_size=256)
+    mixture = look_plan(1000, 0.001, 2, batch_size=256,
+                        options=SequentialOptions(bound="mixture", first_look=32))
     assert mixture.looks == (32, 96, 224, 480, 736, 992, 1000)
     assert mixture.level == pytest.approx(0.0005)
     with pytest.raises(CertificationError, match="bound"):
-        look_plan(100, 0.001, 1, bound="peek")
+        look_plan(100, 0.001, 1, options=SequentialOptions(bound="peek"))
     with pytest.raises(CertificationError, match="never certify"):
         look_plan(300, 0.001, 1, threshold=norm.cdf(3.0))
 
@@ -221,8 +230,10 @@ def test_looks_are_fixed_in_advance_and_split_alpha_over_the_certifying_ones():
 @pytest.mark.parametrize("kwargs, match", [
     (dict(eps=-1.0), "eps"), (dict(n_max=0), "n_max"), (dict(alpha=1.5), "alpha"),
     (dict(ranges=lambda a: [(1,)]), "containing"), (dict(ranges=lambda a: []), "no candidate"),
-    (dict(ranges=[(0, 5)]), "within"), (dict(ranges=[(0,)], selection_n=5), "selection_n"),
-    (dict(selection_n=-3), "selection_n"), (dict(bound="fixed"), "bound"),
+    (dict(ranges=[(0, 5)]), "within"),
+    (dict(ranges=[(0,)], options=SequentialOptions(selection_n=5)), "selection_n"),
+    (dict(options=SequentialOptions(selection_n=-3)), "selection_n"),
+    (dict(options=SequentialOptions(bound="fixed")), "bound"),
 ])
 def test_bad_arguments_raise_certification_error(kwargs, match):
     args = dict(x=FRAME, eps=EPS, alpha=0.001, n_max=100, batch_size=100) | kwargs

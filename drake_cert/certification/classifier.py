@@ -20,6 +20,7 @@ from drake_cert.certification.sampler import (
     make_generator,
 )
 from drake_cert.certification.statistics import (
+    SequentialOptions,
     check_alpha,
     check_count,
     clopper_pearson_bounds,
@@ -221,9 +222,7 @@ class SmoothedClassifier(SmoothedModel):
 
     def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
                ranges: Ranges | None = None, *, seed: int | None = None,
-               selection_n: int = 0, selection_seed: int | None = None,
-               bound: str = "looks", first_look: int = 32,
-               futility_level: float = 0.01) -> SequentialDecision:
+               options: SequentialOptions | None = None) -> SequentialDecision:
         """Is a label range certified at radius ``eps`` around the observed frame ``x``?
         Decided sequentially: it stops as soon as the answer is known either way.
 
@@ -234,9 +233,10 @@ class SmoothedClassifier(SmoothedModel):
           :func:`drake_cert.certification.intervals.candidate_ranges`): no label is chosen
           first; each range T is certified through its best label;
         - a callable of a top label a giving the ranges that hold a, with a the base model's
-          prediction on ``x`` (``selection_n = 0``: one noise-free forward pass) or the most
-          frequent label among ``selection_n`` noisy samples from ``selection_seed`` (an
-          independent stream; ties to the least-friction label); or None: {a} alone.
+          prediction on ``x`` (``options.selection_n = 0``: one noise-free forward pass) or
+          the most frequent label among ``options.selection_n`` noisy samples from
+          ``options.selection_seed`` (an independent stream; ties to the least-friction
+          label); or None: {a} alone.
 
         Estimation samples are examined at looks fixed in advance (:func:`look_plan`:
         Clopper-Pearson bounds at geometric looks with alpha split over the looks, or a
@@ -262,41 +262,41 @@ class SmoothedClassifier(SmoothedModel):
             n_max: most estimation samples to draw.
             batch_size: most noisy copies per forward pass.
             seed: stream of the estimation noise.
-            bound: "looks" (default) or "mixture"; first_look: the first look's least size.
-            futility_level: level of the upper bounds that give up (default 0.01): it trades
-                samples against certified frames, never soundness.
+            options: :class:`SequentialOptions` (default: its defaults): ``bound`` "looks"
+                or "mixture"; ``first_look`` the first look's least size;
+                ``futility_level`` the level of the upper bounds that give up (0.01: it
+                trades samples against certified frames, never soundness); the label
+                selection ``selection_n``, ``selection_seed``.
         """
+        options = options or SequentialOptions()
+        selection_n = options.selection_n
         _check_decide_arguments(eps, alpha, n_max, batch_size, ranges, selection_n)
-        top = self._decide_top(x, ranges, batch_size, selection_n, selection_seed)
-        candidates = self._candidates(ranges, top)
-        singles = sorted({top} if top is not None else {t for c in candidates for t in c})
-        masses = sorted({c for c in candidates if len(c) > 1})
-        plan = look_plan(int(n_max), alpha, len(singles) + len(masses), bound=bound,
-                         threshold=float(norm.cdf(eps / self.sigma)), first_look=first_look,
-                         batch_size=int(batch_size), futility_level=futility_level)
-        counts, best, reason = self._sequential_looks(x, eps, batch_size, seed, plan,
-                                                      candidates, singles, masses)
-        return _sequential_decision(best, reason, candidates, counts, top, plan, eps, alpha,
-                                    selection_n)
+        top = self._decide_top(x, ranges, batch_size, options)
+        tested = _Tested.of(top, self._candidates(ranges, top))
+        plan = look_plan(int(n_max), alpha, len(tested.singles) + len(tested.masses),
+                         threshold=float(norm.cdf(eps / self.sigma)), options=options,
+                         batch_size=int(batch_size))
+        outcome = self._sequential_looks(x, eps, batch_size, seed, plan, tested)
+        return _sequential_decision(outcome, tested, plan, eps, alpha, selection_n)
 
     def _decide_top(self, x: torch.Tensor, ranges: Ranges | None, batch_size: int,
-                    selection_n: int, selection_seed: int | None) -> int | None:
+                    options: SequentialOptions) -> int | None:
         """The top label :meth:`decide`'s ranges are a function of: the most frequent label of
-        ``selection_n`` noisy samples, else the base model's label; None for a fixed list."""
-        if selection_n:
-            select_gen = make_generator(selection_seed, self.device)
-            return select_label(self.sample_counts(x, selection_n, batch_size, select_gen,
-                                                   selection=True))
+        ``options.selection_n`` noisy samples, else the base model's label; None for a fixed
+        list."""
+        if options.selection_n:
+            select_gen = make_generator(options.selection_seed, self.device)
+            return select_label(self.sample_counts(x, options.selection_n, batch_size,
+                                                   select_gen, selection=True))
         if ranges is None or callable(ranges):
             return self.base_label(x)
         return None
 
     def _sequential_looks(self, x: torch.Tensor, eps: float, batch_size: int,
-                          seed: int | None, plan, candidates: list[tuple[int, ...]],
-                          singles: list[int], masses: list[tuple[int, ...]]
-                          ) -> tuple[np.ndarray, tuple | None, str]:
+                          seed: int | None, plan, tested: _Tested) -> _LookOutcome:
         """Estimation samples drawn look by look until :meth:`decide`'s answer is known:
         ``(counts, best, reason)``, best = (T's index, R, a, L_a, L_T) or None."""
+        candidates, singles, masses = tested.candidates, tested.singles, tested.masses
         k = self.num_classes
         counts = np.zeros(k, dtype=np.int64)
         gen = make_generator(seed, self.device)
@@ -315,7 +315,7 @@ class SmoothedClassifier(SmoothedModel):
                     break
                 if best is not None and best[0] <= live:
                     break
-        return counts, best, reason
+        return _LookOutcome(counts, best, reason)
 
     def _scan_look(self, bounds: dict, plan, candidates: list[tuple[int, ...]],
                    singles: list[int], eps: float, best: tuple | None
@@ -401,10 +401,39 @@ def _check_decide_arguments(eps: float, alpha: float, n_max: int, batch_size: in
                                  "function of that label (or None), not a fixed list")
 
 
-def _sequential_decision(best: tuple | None, reason: str, candidates: list[tuple[int, ...]],
-                         counts: np.ndarray, top: int | None, plan, eps: float, alpha: float,
-                         selection_n: int) -> SequentialDecision:
+@dataclasses.dataclass(frozen=True)
+class _Tested:
+    """What :meth:`SmoothedClassifier.decide` bounds: the candidate ranges, most preferred
+    first, the single labels and the multi-label masses tested, and the top label (None for
+    a fixed list)."""
+
+    top: int | None
+    candidates: list[tuple[int, ...]]
+    singles: list[int]
+    masses: list[tuple[int, ...]]
+
+    @classmethod
+    def of(cls, top: int | None, candidates: list[tuple[int, ...]]) -> _Tested:
+        singles = sorted({top} if top is not None else {t for c in candidates for t in c})
+        masses = sorted({c for c in candidates if len(c) > 1})
+        return cls(top, candidates, singles, masses)
+
+
+@dataclasses.dataclass(frozen=True)
+class _LookOutcome:
+    """Where the looks stopped: the estimation counts, the best certified candidate
+    (T's index, R, a, L_a, L_T) or None, and the reason (certified, futile, n_max)."""
+
+    counts: np.ndarray
+    best: tuple | None
+    reason: str
+
+
+def _sequential_decision(outcome: _LookOutcome, tested: _Tested, plan, eps: float,
+                         alpha: float, selection_n: int) -> SequentialDecision:
     """:meth:`SmoothedClassifier.decide`'s answer from the looks' outcome."""
+    best, reason, counts = outcome.best, outcome.reason, outcome.counts
+    candidates, top = tested.candidates, tested.top
     samples = int(counts.sum()) + int(selection_n)
     common = dict(samples=samples, selection_samples=int(selection_n), eps=float(eps),
                   alpha=float(alpha), bound=plan.name, counts=counts)

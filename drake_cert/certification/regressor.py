@@ -19,6 +19,7 @@ from drake_cert.certification.sampler import (
     make_generator,
 )
 from drake_cert.certification.statistics import (
+    SequentialOptions,
     check_alpha,
     check_count,
     conformal_beta,
@@ -99,8 +100,8 @@ class MedianSmoothedRegressor(SmoothedModel):
 
     def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
                intervals: Callable[[float], Sequence[tuple[float, float]]], *,
-               seed: int | None = None, bound: str = "looks", first_look: int = 32,
-               futility_level: float = 0.01) -> MedianDecision:
+               seed: int | None = None,
+               options: SequentialOptions | None = None) -> MedianDecision:
         """Is the smoothed median of every frame within ``eps`` of ``x`` inside one of the
         candidate intervals? Decided sequentially (a confidence sequence for quantiles).
 
@@ -115,8 +116,14 @@ class MedianSmoothedRegressor(SmoothedModel):
         ``intervals(v)`` lists the candidates, most preferred first, given v, the base
         model's output on ``x`` itself (noise-free, so chosen before any sample is drawn).
         Stops at the most preferred candidate not yet ruled out once it is certified, when
-        all are ruled out (futility, free), or at ``n_max``.
+        all are ruled out (futility, free), or at ``n_max``. ``options``
+        (:class:`SequentialOptions`): the looks' ``bound``, ``first_look`` and
+        ``futility_level``; it takes no label selection.
         """
+        options = options or SequentialOptions()
+        if options.selection_n or options.selection_seed is not None:
+            raise CertificationError("a regressor's decision takes no label selection "
+                                     "(selection_n, selection_seed)")
         check_alpha(alpha)
         check_count(n_max, "n_max")
         check_count(batch_size, "batch_size")
@@ -136,9 +143,8 @@ class MedianSmoothedRegressor(SmoothedModel):
         his = sorted({hi for _, hi in candidates})
         los = sorted({lo for lo, _ in candidates})
         p_high = float(norm.cdf(eps / self.sigma))
-        plan = look_plan(int(n_max), alpha, len(his) + len(los), bound=bound,
-                         threshold=p_high, first_look=first_look, batch_size=int(batch_size),
-                         futility_level=futility_level)
+        plan = look_plan(int(n_max), alpha, len(his) + len(los), threshold=p_high,
+                         options=options, batch_size=int(batch_size))
         below = dict.fromkeys(his, 0)  # samples with y <= hi
         above = dict.fromkeys(los, 0)  # samples with y >= lo
         t, gen, chosen, reason = 0, make_generator(seed, self.device), -1, "n_max"

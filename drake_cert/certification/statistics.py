@@ -115,6 +115,22 @@ Robbins' beta-mixture confidence sequence (any look)."""
 
 
 @dataclasses.dataclass(frozen=True)
+class SequentialOptions:
+    """How a sequential decision is laid out before any sample is drawn (docs/design.md 3).
+
+    The looks (:func:`look_plan`): ``bound``, ``first_look``, ``futility_level``. The label
+    selection (:meth:`SmoothedClassifier.decide` only): ``selection_n``, ``selection_seed``.
+    None of them can make a certificate unsound; they trade samples against abstentions.
+    """
+
+    bound: str = "looks"  # "looks" (Clopper-Pearson at fixed looks) or "mixture"
+    first_look: int = 32  # samples at the first look (mixture: the first batch)
+    futility_level: float = 0.01  # level of the upper bounds that give up
+    selection_n: int = 0  # noisy samples that choose the top label (0: the base model's)
+    selection_seed: int | None = None  # stream of those samples (independent of the estimate)
+
+
+@dataclasses.dataclass(frozen=True)
 class LookPlan:
     """When a sequential decision looks at its samples and which bounds it then uses.
 
@@ -173,9 +189,11 @@ def unanimous_samples(level: float, threshold: float) -> int:
 
 
 def look_plan(n_max: int, alpha: float, tests: int, *, threshold: float = 0.5,
-              bound: str = "looks", first_look: int = 32, batch_size: int = 500,
-              futility_level: float = 0.01) -> LookPlan:
+              options: SequentialOptions | None = None, batch_size: int = 500) -> LookPlan:
     """The looks of a sequential decision with at most ``n_max`` samples (:class:`LookPlan`).
+
+    ``options`` (:class:`SequentialOptions`, default: its defaults) gives ``bound``,
+    ``first_look`` and ``futility_level``.
 
     "looks": the certifying looks start at ``n_min``, the fewest samples that could certify a
     Bernoulli mean above ``threshold`` (:func:`unanimous_samples`, at the level the looks
@@ -184,6 +202,9 @@ def look_plan(n_max: int, alpha: float, tests: int, *, threshold: float = 0.5,
     could not certify. "mixture": looks after batches of ``first_look``, doubling up to
     ``batch_size`` (every look may certify).
     """
+    options = options or SequentialOptions()
+    bound, first_look = options.bound, options.first_look
+    futility_level = options.futility_level
     check_count(n_max, "n_max")
     check_count(tests, "tests")
     check_count(first_look, "first_look")
