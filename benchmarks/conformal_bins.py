@@ -22,7 +22,7 @@ import numpy as np
 from drake_cert.certification import conformal as rc
 from drake_cert.certification.classifier import SmoothedClassifier
 from drake_cert.certification.pac_conformal import bin_edges, bin_index
-from drake_cert.certification.sampler import with_precision
+from drake_cert.certification.sampler import CalibrationSampling, with_precision
 from drake_cert.certification.statistics import clopper_pearson_one_sided
 from drake_cert.cli.progress import progress_bar
 from drake_cert.config import load_conditions
@@ -54,10 +54,10 @@ def main() -> None:
     test = load_split(p.preset, "test", conditions=conditions,
                       frames_per_class=args.frames_per_label)
     start = time.perf_counter()
+    sampling = CalibrationSampling(n=spec.n, batch_size=spec.batch_size, seed=HELD_OUT_ROOT,
+                                   progress=lambda it: progress_bar(it, desc="held-out votes"))
     counts = rc.true_label_counts(SmoothedClassifier(evaluated, cal.num_classes, p.sigma),
-                                  test.images, test.labels.tolist(), n=spec.n,
-                                  batch_size=spec.batch_size, root_seed=HELD_OUT_ROOT,
-                                  progress=lambda it: progress_bar(it, desc="held-out votes"))
+                                  test.images, test.labels.tolist(), sampling=sampling)
     seconds = time.perf_counter() - start
     scores = rc.calibration_scores(counts, spec.n, cal.beta_cal)
     labels, stiffness = test.labels.numpy(), test.stiffness_n_per_rad.numpy()

@@ -44,7 +44,8 @@ from pydrake.systems.primitives import LogVectorOutput, Saturation
 from drake_cert.certification.alpha_spending import AlphaSpending, planned_decisions
 from drake_cert.certification.backends import resolve_backend
 from drake_cert.certification.intervals import candidate_ranges
-from drake_cert.certification.sampler import resolve_precision
+from drake_cert.certification.pac_conformal import PacTargets
+from drake_cert.certification.sampler import CalibrationSampling, resolve_precision
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.config import ConditionsTable, Settings, VehicleParams
 from drake_cert.errors import ConfigError
@@ -168,11 +169,12 @@ def _regression_beta(model, scenario: Scenario, conditions: ConditionsTable) -> 
     p = scenario.perception
     cal = load_split(p.preset, "calibration", conditions=conditions).per_class(
         p.calibration_frames_per_class)
+    sampling = CalibrationSampling(n=p.calibration_n,
+                                   batch_size=min(p.batch_size, p.calibration_n),
+                                   seed=child_seed(scenario.seed, Purpose.REGRESSION_CALIBRATION))
     calib = calibrate_conformal(
         MedianSmoothedRegressor(model, p.sigma), cal.images, cal.stiffness_n_per_rad.tolist(),
-        cal.labels.tolist(), n=p.calibration_n, batch_size=min(p.batch_size, p.calibration_n),
-        alpha_m=p.alpha_m, alpha_c=p.alpha_c,
-        seed=child_seed(scenario.seed, Purpose.REGRESSION_CALIBRATION))
+        cal.labels.tolist(), sampling=sampling, alpha_m=p.alpha_m, alpha_c=p.alpha_c)
     return calib.beta
 
 
@@ -220,9 +222,10 @@ def conformal_votes(model, scenario: Scenario, conditions: ConditionsTable,
         cal = load_split(p.preset, "calibration", conditions=conditions,
                          frames_per_class=spec.frames_per_label)
         classifier = SmoothedClassifier(model, len(spec.conditions), p.sigma)
-        counts = rc.true_label_counts(classifier, cal.images, cal.labels.tolist(), n=spec.n,
-                                      batch_size=spec.batch_size, root_seed=spec.root_seed,
-                                      progress=progress_of)
+        sampling = CalibrationSampling(n=spec.n, batch_size=spec.batch_size,
+                                       seed=spec.root_seed, progress=progress_of)
+        counts = rc.true_label_counts(classifier, cal.images, cal.labels.tolist(),
+                                      sampling=sampling)
         return CalibrationVotes(spec, cal.labels.numpy().astype(np.int64),
                                 cal.stiffness_n_per_rad.numpy().astype(np.float64), counts)
 
@@ -244,10 +247,12 @@ def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTabl
     p = scenario.perception
     votes = conformal_votes(model, scenario, conditions, progress)
     intervals = [(c[1], c[2]) for c in votes.spec.conditions]
+    targets = PacTargets(bins=p.conformal_bins_per_label, miss_target=p.conformal_alpha_c,
+                         delta_cal=p.conformal_delta_cal)
     return rc.pac_calibration_from_counts(
-        votes.true_counts, votes.labels, votes.stiffness_n_per_rad, intervals, n=votes.spec.n,
-        sigma=p.sigma, bins=p.conformal_bins_per_label, miss_target=p.conformal_alpha_c,
-        delta_cal=p.conformal_delta_cal, label_names=[c[0] for c in votes.spec.conditions])
+        rc.TrueLabelVotes(votes.true_counts, votes.labels, votes.stiffness_n_per_rad,
+                          votes.spec.n), intervals,
+        sigma=p.sigma, targets=targets, label_names=[c[0] for c in votes.spec.conditions])
 
 
 def _calibration_warnings(scenario: Scenario, regression_beta: float) -> list[str]:

@@ -20,6 +20,7 @@ from drake_cert.certification.attacks import (
 from drake_cert.certification.classifier import ABSTAIN, SmoothedClassifier
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+from drake_cert.certification.sampler import CalibrationSampling
 from drake_cert.config import load_conditions
 
 PRESET = "carla-like"
@@ -199,7 +200,8 @@ def test_regression_runtime_interval_covers_true_stiffness_under_attack(regresso
     smooth = MedianSmoothedRegressor(regressor, SIGMA)
     cal_images, cal_labels, cal_stiffness = make_frames(300, seed=7)
     cal = calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
-                              n=200, batch_size=200, alpha_m=0.01, alpha_c=0.05, seed=0)
+                              sampling=CalibrationSampling(n=200, batch_size=200, seed=0),
+                              alpha_m=0.01, alpha_c=0.05)
     assert math.isfinite(cal.beta) and cal.beta > 0
     images, _, stiffness = make_frames(24, seed=99)
     eps = 0.3

@@ -28,6 +28,7 @@ from drake_cert.certification.conformal import (
     sequential_label_set,
 )
 from drake_cert.certification.intervals import runtime_classification_interval
+from drake_cert.certification.sampler import CalibrationSampling
 from drake_cert.certification.statistics import clopper_pearson_one_sided
 from drake_cert.config import load_conditions
 from drake_cert.errors import CertificationError
@@ -77,8 +78,9 @@ def shift(images: torch.Tensor, eps: float, sign: float) -> torch.Tensor:
 def setup():
     smooth = SmoothedClassifier(MeanThreshold(), 3, SIGMA)
     cal_images, cal_labels, _ = make_frames(150, seed=1)
-    calibration = calibrate_robust_conformal(smooth, cal_images, cal_labels, n=1000,
-                                             batch_size=1000, root_seed=0)
+    calibration = calibrate_robust_conformal(
+        smooth, cal_images, cal_labels, sampling=CalibrationSampling(n=1000, batch_size=1000,
+                                                                     seed=0))
     return smooth, calibration
 
 

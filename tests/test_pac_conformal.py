@@ -7,8 +7,9 @@ import numpy as np
 import pytest
 from scipy.stats import beta as beta_dist
 
-from drake_cert.certification.conformal import pac_calibration_from_counts
+from drake_cert.certification.conformal import TrueLabelVotes, pac_calibration_from_counts
 from drake_cert.certification.pac_conformal import (
+    PacTargets,
     bin_edges,
     bin_index,
     min_frames_per_bin,
@@ -92,8 +93,9 @@ def test_every_stiffness_bin_misses_within_its_bound_where_a_label_average_does_
     rng = np.random.default_rng(5)
     intervals = [(80e3, 120e3), (40e3, 80e3)]
     scores, labels, stiffness = _edge_heavy_scores(rng, 2000, intervals)
-    thresholds, per_bin = pac_binned_thresholds(scores, labels, stiffness, intervals, bins=4,
-                                                miss_target=0.1, delta_cal=1e-3)
+    thresholds, per_bin = pac_binned_thresholds(
+        scores, labels, stiffness, intervals,
+        targets=PacTargets(bins=4, miss_target=0.1, delta_cal=1e-3))
     test_s, test_l, test_c = _edge_heavy_scores(rng, 40000, intervals)
     for lab, (lo, hi) in enumerate(intervals):
         rows = per_bin[lab]
@@ -112,8 +114,9 @@ def test_the_calibration_reports_the_worst_bin_and_names_a_bin_without_frames():
     intervals = [(80e3, 120e3), (40e3, 80e3), (20e3, 40e3)]
     scores, labels, stiffness = _edge_heavy_scores(rng, 800, intervals)
     counts = np.round(scores * 500).astype(np.int64)
-    cal = pac_calibration_from_counts(counts, labels, stiffness, intervals, n=500, sigma=1.0,
-                                      bins=4, miss_target=0.1, delta_cal=1e-3)
+    targets = PacTargets(bins=4, miss_target=0.1, delta_cal=1e-3)
+    cal = pac_calibration_from_counts(TrueLabelVotes(counts, labels, stiffness, 500), intervals,
+                                      sigma=1.0, targets=targets)
     worst = max(r.miss_bound for rows in cal.bins.values() for r in rows)
     assert cal.alpha_c == worst <= 0.1 and cal.delta_cal == 1e-3
     assert cal.alpha_total == pytest.approx(worst + 0.002)
@@ -121,6 +124,6 @@ def test_the_calibration_reports_the_worst_bin_and_names_a_bin_without_frames():
     assert again == cal
     keep = ~((labels == 2) & (stiffness > 35e3))  # snow's grippiest bin left empty
     with pytest.raises(CertificationError, match="'snow', stiffness bin \\[35000, 40000\\]"):
-        pac_calibration_from_counts(counts[keep], labels[keep], stiffness[keep], intervals,
-                                    n=500, sigma=1.0, bins=4, miss_target=0.1, delta_cal=1e-3,
+        pac_calibration_from_counts(TrueLabelVotes(counts[keep], labels[keep], stiffness[keep],
+                                                   500), intervals, sigma=1.0, targets=targets,
                                     label_names=["sunny", "rain", "snow"])

@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Iterable, Sequence
 
 import numpy as np
 import torch
@@ -40,10 +40,11 @@ from drake_cert.certification.classifier import ClassCertificate, SmoothedClassi
 from drake_cert.certification.intervals import StiffnessBounds
 from drake_cert.certification.pac_conformal import (
     BinThreshold,
+    PacTargets,
     check_bins_informative,
     pac_binned_thresholds,
 )
-from drake_cert.certification.sampler import make_generator
+from drake_cert.certification.sampler import CalibrationSampling, make_generator
 from drake_cert.certification.seeds import stream_seed
 from drake_cert.certification.statistics import check_alpha, check_count, clopper_pearson_one_sided
 from drake_cert.errors import CertificationError
@@ -163,13 +164,39 @@ def thresholds_from_scores(scores: np.ndarray, labels: np.ndarray, num_classes: 
     return thresholds, sizes
 
 
+@dataclasses.dataclass(frozen=True)
+class ConformalLevels:
+    """The robust conformal calibration's levels (module doc): ``alpha_c`` the conformal
+    miss level, ``beta_cal`` and ``beta_test`` the smoothing bounds' failure probabilities at
+    calibration and at test time."""
+
+    alpha_c: float = ALPHA_C
+    beta_cal: float = BETA_CAL
+    beta_test: float = BETA_TEST
+
+
+@dataclasses.dataclass(frozen=True)
+class TrueLabelVotes:
+    """The calibration frames' true-label votes (:func:`true_label_counts`): ``true_counts[i]``
+    of ``n`` noisy samples of frame i voted for its true label ``labels[i]`` (stiffness
+    ``stiffness_n_per_rad[i]``, N/rad)."""
+
+    true_counts: np.ndarray
+    labels: Sequence[int]
+    stiffness_n_per_rad: Sequence[float]
+    n: int
+
+
 def true_label_counts(classifier: SmoothedClassifier, frames: torch.Tensor,
-                      labels: Sequence[int], *, n: int, batch_size: int,
-                      root_seed: int | None = 0,
-                      progress: Callable[[Iterable], Iterable] | None = None) -> np.ndarray:
-    """Votes for its true label among n noisy samples of each calibration frame; frame i draws
-    from its own stream (``seeds.stream_seed(root_seed, i, "calibration",
-    split="calibration")``; ``root_seed`` None: fresh global noise)."""
+                      labels: Sequence[int], *, sampling: CalibrationSampling) -> np.ndarray:
+    """Votes for its true label among ``sampling.n`` noisy samples of each calibration frame;
+    frame i draws from its own stream (``seeds.stream_seed(sampling.seed, i, "calibration",
+    split="calibration")``; seed None: fresh global noise)."""
+    n, batch_size, root_seed = sampling.n, sampling.batch_size, sampling.seed
+    progress = sampling.progress
+    if sampling.frame_seeds is not None:
+        raise CertificationError("the classifier's calibration derives its frame streams "
+                                 "from the root seed; it takes no frame_seeds")
     check_count(n, "n")
     labels = np.asarray([int(v) for v in labels])
     if len(frames) != len(labels):
@@ -190,17 +217,19 @@ def true_label_counts(classifier: SmoothedClassifier, frames: torch.Tensor,
 
 
 def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Tensor,
-                               labels: Sequence[int], *, n: int, batch_size: int,
-                               alpha_c: float = ALPHA_C, beta_cal: float = BETA_CAL,
-                               beta_test: float = BETA_TEST, root_seed: int | None = 0,
-                               progress: Callable[[Iterable], Iterable] | None = None
+                               labels: Sequence[int], *, sampling: CalibrationSampling,
+                               levels: ConformalLevels | None = None
                                ) -> RobustConformalCalibration:
     """Calibrate the robust conformal label set on held-out frames (see module doc): marginal
-    coverage, one threshold per label (:func:`true_label_counts` draws the votes)."""
+    coverage, one threshold per label (:func:`true_label_counts` draws the votes as
+    ``sampling`` says). ``levels``: alpha_c, beta_cal, beta_test (default
+    :class:`ConformalLevels`)."""
+    levels = levels or ConformalLevels()
+    alpha_c, beta_cal, beta_test = levels.alpha_c, levels.beta_cal, levels.beta_test
+    n = sampling.n
     for name, a in (("alpha_c", alpha_c), ("beta_cal", beta_cal), ("beta_test", beta_test)):
         check_alpha(a, name)
-    true_counts = true_label_counts(classifier, frames, labels, n=n, batch_size=batch_size,
-                                    root_seed=root_seed, progress=progress)
+    true_counts = true_label_counts(classifier, frames, labels, sampling=sampling)
     scores = calibration_scores(true_counts, n, beta_cal)
     thresholds, sizes = thresholds_from_scores(scores, np.asarray(labels, dtype=np.int64),
                                                classifier.num_classes, alpha_c)
@@ -208,25 +237,28 @@ def calibrate_robust_conformal(classifier: SmoothedClassifier, frames: torch.Ten
                                       classifier.sigma, int(n), alpha_c, beta_cal, beta_test)
 
 
-def pac_calibration_from_counts(true_counts: np.ndarray, labels: Sequence[int],
-                                stiffness_n_per_rad: Sequence[float],
-                                intervals: Sequence[tuple[float, float]], *, n: int,
-                                sigma: float, bins: int, miss_target: float, delta_cal: float,
-                                beta_cal: float = BETA_CAL, beta_test: float = BETA_TEST,
+def pac_calibration_from_counts(votes: TrueLabelVotes, intervals: Sequence[tuple[float, float]],
+                                *, sigma: float, targets: PacTargets,
+                                levels: ConformalLevels | None = None,
                                 label_names: Sequence[str] | None = None
                                 ) -> RobustConformalCalibration:
     """The calibration-conditional, per-stiffness-bin calibration
     (:mod:`drake_cert.certification.pac_conformal`) from the calibration frames' true-label
-    votes (n samples each). ``alpha_c`` of the result is the largest bin bound (at most
-    ``miss_target``); :class:`CertificationError` when a bin has too few frames for any
-    threshold (``label_names`` name it)."""
+    votes (:class:`TrueLabelVotes`, n samples each) with ``targets`` (bins, miss target,
+    delta_cal). ``levels``: beta_cal and beta_test (its alpha_c is not used: ``alpha_c`` of
+    the result is the largest bin bound, at most ``targets.miss_target``);
+    :class:`CertificationError` when a bin has too few frames for any threshold
+    (``label_names`` name it)."""
+    levels = levels or ConformalLevels()
+    beta_cal, beta_test = levels.beta_cal, levels.beta_test
+    n, delta_cal = votes.n, targets.delta_cal
     for name, a in (("beta_cal", beta_cal), ("beta_test", beta_test)):
         check_alpha(a, name)
-    labels = np.asarray(labels, dtype=np.int64)
-    scores = calibration_scores(np.asarray(true_counts), n, beta_cal)
-    thresholds, per_bin = pac_binned_thresholds(scores, labels, np.asarray(stiffness_n_per_rad),
-                                                intervals, bins=bins, miss_target=miss_target,
-                                                delta_cal=delta_cal)
+    labels = np.asarray(votes.labels, dtype=np.int64)
+    scores = calibration_scores(np.asarray(votes.true_counts), n, beta_cal)
+    thresholds, per_bin = pac_binned_thresholds(scores, labels,
+                                                np.asarray(votes.stiffness_n_per_rad),
+                                                intervals, targets=targets)
     names = list(label_names) if label_names is not None else \
         [str(i) for i in range(len(intervals))]
     check_bins_informative(per_bin, names)
@@ -272,10 +304,19 @@ def conformal_looks(n_max: int, first_look: int = 64) -> tuple[int, ...]:
     return tuple(looks)
 
 
+@dataclasses.dataclass(frozen=True)
+class LabelSetStopping:
+    """When :func:`sequential_label_set` looks and stops (a stopping rule: no guarantee rests
+    on it)."""
+
+    first_look: int = 64  # samples at the first look, doubling up to n_max
+    settle_level: float = 0.01  # level of the lower bounds that settle the range's ends
+
+
 def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
                          calibration: RobustConformalCalibration, eps: float, n_max: int,
-                         batch_size: int, *, seed: int | None = None, first_look: int = 64,
-                         settle_level: float = 0.01) -> ConformalDecision:
+                         batch_size: int, *, seed: int | None = None,
+                         stopping: LabelSetStopping | None = None) -> ConformalDecision:
     """The robust conformal label set ``C(x')`` at the observed frame ``x`` (budget ``eps``),
     drawing samples only until the set's label range is decided (DESIGN 3.6, 3.7).
 
@@ -289,7 +330,10 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
     rule only, no guarantee rests on it) above their threshold, or where the range is every
     label and neither end can leave it by ``n_max`` (:func:`labels_that_stay`; before the first
     sample where no count could exclude them: the envelope, free), or at ``n_max``.
+    ``stopping``: ``first_look`` and ``settle_level`` (:class:`LabelSetStopping`).
     """
+    stopping = stopping or LabelSetStopping()
+    first_look, settle_level = stopping.first_look, stopping.settle_level
     check_count(batch_size, "batch_size")
     check_alpha(settle_level, "settle_level")
     if not (math.isfinite(eps) and eps >= 0):

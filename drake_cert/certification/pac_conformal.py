@@ -98,18 +98,28 @@ class BinThreshold:
     miss_bound: float  # BetaInv(1 - delta_bin; k, m - k + 1)
 
 
+@dataclasses.dataclass(frozen=True)
+class PacTargets:
+    """What the calibration-conditional calibration aims for (DESIGN 3.6)."""
+
+    bins: int  # stiffness bins per label
+    miss_target: float  # largest miss bound a bin's threshold may have
+    delta_cal: float  # probability that some bin's bound fails, split over labels x bins
+
+
 def pac_binned_thresholds(scores: np.ndarray, labels: np.ndarray,
                           stiffness_n_per_rad: np.ndarray,
-                          intervals: Sequence[tuple[float, float]], *, bins: int,
-                          miss_target: float, delta_cal: float
+                          intervals: Sequence[tuple[float, float]], *, targets: PacTargets
                           ) -> tuple[dict[int, float], dict[int, list[BinThreshold]]]:
     """Per label the threshold ``q_l = min_b r_(k_b)`` over its stiffness bins, and each bin's
-    :class:`BinThreshold` (module doc). ``intervals[l]``: label l's stiffness interval.
+    :class:`BinThreshold` (module doc). ``intervals[l]``: label l's stiffness interval;
+    ``targets``: bins per label, miss target and delta_cal (:class:`PacTargets`).
 
     Every bin's bound is taken at ``delta_cal / (labels x bins)``. A bin with too few frames
     for any order statistic within ``miss_target`` gets k = 0, i.e. threshold 0 (the label is
     never dropped from a set): sound, and useless, so :func:`check_bins_informative` names it.
     """
+    bins, miss_target, delta_cal = targets.bins, targets.miss_target, targets.delta_cal
     check_alpha(delta_cal, "delta_cal")
     scores = np.asarray(scores, dtype=np.float64)
     labels = np.asarray(labels, dtype=np.int64)

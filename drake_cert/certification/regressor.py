@@ -13,6 +13,7 @@ import torch
 from scipy.stats import norm
 
 from drake_cert.certification.sampler import (
+    CalibrationSampling,
     SmoothedModel,
     check_frame,
     check_frame_size,
@@ -202,20 +203,21 @@ class ConformalCalibration:
 
 
 def calibrate_conformal(regressor: MedianSmoothedRegressor, frames: torch.Tensor,
-                        stiffness_n_per_rad: Sequence[float], labels: Sequence[int], *, n: int,
-                        batch_size: int, alpha_m: float = 0.001, alpha_c: float = 0.01,
-                        seed: int | None = 0,
-                        progress: Callable[[Iterable], Iterable] | None = None,
-                        frame_seeds: Sequence[int] | None = None) -> ConformalCalibration:
+                        stiffness_n_per_rad: Sequence[float], labels: Sequence[int], *,
+                        sampling: CalibrationSampling, alpha_m: float = 0.001,
+                        alpha_c: float = 0.01) -> ConformalCalibration:
     """Split-conformal calibration of the run-time interval on calibration frames (DESIGN 3).
 
     For each frame: ``[L_i, U_i]``, the order-statistic interval of the smoothed median
     (eps = 0 bounds at level ``alpha_m``, n samples), the score
     ``max(y_i - L_i, U_i - y_i)`` with y_i the true stiffness, and per true label the
-    conformal quantile at ``alpha_c`` (:func:`conformal_beta`). Noise: one stream from
-    ``seed`` for all frames, or one per frame from ``frame_seeds``
+    conformal quantile at ``alpha_c`` (:func:`conformal_beta`). ``sampling``
+    (:class:`CalibrationSampling`): n samples per frame in batches; noise: one stream from
+    ``sampling.seed`` for all frames, or one per frame from ``sampling.frame_seeds``
     (``seeds.stream_seed(root, i, "calibration", split="calibration")``).
     """
+    n, batch_size, seed = sampling.n, sampling.batch_size, sampling.seed
+    progress, frame_seeds = sampling.progress, sampling.frame_seeds
     if len(frames) != len(stiffness_n_per_rad) or len(frames) != len(labels):
         raise CertificationError("frames, stiffness and labels must have the same length")
     if frame_seeds is not None and len(frame_seeds) != len(frames):

@@ -7,6 +7,7 @@ from __future__ import annotations
 import copy
 import ctypes
 import ctypes.util
+import dataclasses
 import functools
 import os
 import sys
@@ -192,6 +193,26 @@ class NoisySampler:
             for _ in self.outputs(x, 1, batch_size, None):
                 pass
         return time.perf_counter() - start
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationSampling:
+    """How the calibration frames are sampled (DESIGN 3): n noisy samples per frame, drawn
+    in batches, from seeded noise streams, with an optional progress wrapper.
+
+    ``seed`` is the root of the noise: the classifier's calibration
+    (:func:`~drake_cert.certification.conformal.true_label_counts`) draws frame i from
+    ``seeds.stream_seed(seed, i, "calibration", split="calibration")``; the regressor's
+    (:func:`~drake_cert.certification.regressor.calibrate_conformal`) draws every frame from
+    one stream of ``seed``, or frame i from ``frame_seeds[i]`` when they are given. None:
+    fresh global noise.
+    """
+
+    n: int  # noisy samples per calibration frame
+    batch_size: int  # most noisy copies per forward pass
+    seed: int | None = 0  # root of the noise streams (see above)
+    progress: Callable | None = None  # wraps the iterator over frame indices (a bar)
+    frame_seeds: Sequence[int] | None = None  # regressor only: one stream per frame
 
 
 def make_generator(seed: int | None, device: torch.device) -> torch.Generator | None:

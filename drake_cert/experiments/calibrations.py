@@ -32,17 +32,19 @@ def calibration_beta(config: ReproduceConfig, preset: str, sigma: float, model,
     ``calibration_per_class`` frames per label of the calibration split (DESIGN 3), with its own
     seed stream; infinite (the envelope) when too few frames for alpha_c."""
     from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
+    from drake_cert.certification.sampler import CalibrationSampling
     from drake_cert.perception.datasets import load_split
 
     c = config
     cal = load_split(preset, "calibration", conditions=conditions,
                      frames_per_class=c.calibration_per_class)
+    sampling = CalibrationSampling(
+        n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
+        seed=calibration_seed(c, Purpose.REGRESSION_CALIBRATION, preset, sigma))
     calib = calibrate_conformal(
         MedianSmoothedRegressor(evaluated_run_model(c, model), sigma, device=c.device),
         cal.images, cal.stiffness_n_per_rad.tolist(),
-        cal.labels.tolist(), n=c.calibration_n, batch_size=min(c.batch_size, c.calibration_n),
-        alpha_m=c.alpha_m, alpha_c=c.alpha_c,
-        seed=calibration_seed(c, Purpose.REGRESSION_CALIBRATION, preset, sigma))
+        cal.labels.tolist(), sampling=sampling, alpha_m=c.alpha_m, alpha_c=c.alpha_c)
     return calib.beta
 
 
@@ -114,6 +116,7 @@ def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, co
     ``conformal_calibration`` (preset, sigma) of the root seed."""
     from drake_cert.certification.classifier import SmoothedClassifier
     from drake_cert.certification.conformal import calibrate_robust_conformal
+    from drake_cert.certification.sampler import CalibrationSampling
     from drake_cert.perception.datasets import load_split
 
     cal = load_split(preset, "calibration", conditions=conditions or load_conditions(),
@@ -122,9 +125,9 @@ def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, co
         evaluated_run_model(config, run_model(config, preset, "classify", sigma)),
         len(cal.label_names), sigma, device=config.device)
     return calibrate_robust_conformal(
-        classifier, cal.images, cal.labels.tolist(), n=config.conformal_n,
-        batch_size=min(config.batch_size, config.conformal_n),
-        root_seed=calibration_seed(config, Purpose.CONFORMAL_CALIBRATION, preset, sigma))
+        classifier, cal.images, cal.labels.tolist(), sampling=CalibrationSampling(
+            n=config.conformal_n, batch_size=min(config.batch_size, config.conformal_n),
+            seed=calibration_seed(config, Purpose.CONFORMAL_CALIBRATION, preset, sigma)))
 
 
 class ConformalWorker:

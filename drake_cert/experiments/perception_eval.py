@@ -21,12 +21,14 @@ from drake_cert.certification.classifier import SmoothedClassifier, check_enough
 from drake_cert.certification.conformal import (
     ALPHA_C,
     BETA_CAL,
+    ConformalLevels,
     calibrate_robust_conformal,
     conformal_interval,
 )
 from drake_cert.certification.intervals import runtime_classification_interval, runtime_interval
 from drake_cert.certification.regressor import MedianSmoothedRegressor, calibrate_conformal
 from drake_cert.certification.sampler import (
+    CalibrationSampling,
     resolve_precision,
     with_precision,
 )
@@ -266,10 +268,12 @@ def calibrate_classifier(smooth: SmoothedClassifier, calibration: tuple,
     """The robust conformal calibration of ``smooth`` on ``calibration = (images, labels)``
     (:func:`calibrate_robust_conformal` with the settings' levels and root seed)."""
     return calibrate_robust_conformal(
-        smooth, calibration[0], [int(v) for v in calibration[1]], n=settings.calibration_n,
-        batch_size=settings.batch_size, alpha_c=settings.conformal_alpha_c,
-        beta_cal=settings.conformal_beta, beta_test=settings.conformal_beta,
-        root_seed=settings.seed, progress=progress)
+        smooth, calibration[0], [int(v) for v in calibration[1]],
+        sampling=CalibrationSampling(n=settings.calibration_n, batch_size=settings.batch_size,
+                                     seed=settings.seed, progress=progress),
+        levels=ConformalLevels(alpha_c=settings.conformal_alpha_c,
+                               beta_cal=settings.conformal_beta,
+                               beta_test=settings.conformal_beta))
 
 
 def clopper_pearson_interval(successes: int, trials: int,
@@ -448,13 +452,13 @@ def calibrate_regressor(smooth: MedianSmoothedRegressor, calibration: tuple,
     """The conformal beta of ``smooth`` on ``calibration = (images, stiffness, labels)``, each
     frame with its own calibration stream of the root seed."""
     cal_images, cal_stiffness, cal_labels = calibration
+    sampling = CalibrationSampling(
+        n=settings.calibration_n, batch_size=settings.batch_size, progress=progress,
+        frame_seeds=[stream_seed(settings.seed, i, "calibration", split="calibration")
+                     for i in range(len(cal_images))])
     return calibrate_conformal(smooth, cal_images, cal_stiffness.tolist(), cal_labels.tolist(),
-                               n=settings.calibration_n, batch_size=settings.batch_size,
-                               alpha_m=settings.alpha_m, alpha_c=settings.alpha_c,
-                               progress=progress,
-                               frame_seeds=[stream_seed(settings.seed, i, "calibration",
-                                                        split="calibration")
-                                            for i in range(len(cal_images))])
+                               sampling=sampling, alpha_m=settings.alpha_m,
+                               alpha_c=settings.alpha_c)
 
 
 def summarize_regression(records: list[dict], settings: CertifySettings,
