@@ -8,7 +8,13 @@ import dataclasses
 import pytest
 
 from drake_cert.config import load_conditions
-from drake_cert.experiments.perception_eval import certify_classifier, json_safe, select_frames
+from drake_cert.experiments.perception_eval import (
+    CalibrationInputs,
+    EvalFrames,
+    certify_classifier,
+    json_safe,
+    select_frames,
+)
 from drake_cert.experiments.perception_table import (
     DATA_SEED,
     CellStore,
@@ -55,9 +61,10 @@ def test_shared_calibration_and_clean_certificates_equal_a_cell_run_alone(tiny_c
     cal = load_split("carla-like", "calibration", seed=DATA_SEED,
                      frames_per_class=TINY.conformal_per_class)
     settings = TINY.certify("carla-like", "classify", TINY.sigma, "ea", 0.25)
-    records, _ = certify_classifier(model, test.images[idx], test.labels[idx],
-                                    test.stiffness_n_per_rad[idx], list(test.label_names),
-                                    table, settings, calibration=(cal.images, cal.labels))
+    frames = EvalFrames(test.images[idx], test.labels[idx], test.stiffness_n_per_rad[idx],
+                        tuple(test.label_names))
+    records, _ = certify_classifier(model, frames, table, settings,
+                                    inputs=CalibrationInputs(frames=(cal.images, cal.labels)))
     assert json_safe(records) == cells[cell_key("classify", "g", "ea", 0.25)]["records"]
 
 

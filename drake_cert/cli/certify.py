@@ -120,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.config import load_conditions
     from drake_cert.experiments.perception_eval import (
+        CalibrationInputs,
+        EvalFrames,
         certify_classifier,
         certify_regressor,
         json_safe,
@@ -152,17 +154,18 @@ def run(args: argparse.Namespace) -> int:
             cal = load_split(settings.preset, "calibration", seed=DATA_SEED, size=size,
                              frames_per_class=settings.conformal_per_class)
             conformal_cal = (cal.images, cal.labels)
-        records, summary = certify_classifier(model, images, labels, stiffness,
-                                              list(test.label_names), table, settings, progress,
-                                              calibration=conformal_cal)
+        frames = EvalFrames(images, labels, stiffness, tuple(test.label_names))
+        records, summary = certify_classifier(model, frames, table, settings, progress,
+                                              CalibrationInputs(frames=conformal_cal))
     else:
         calibration = None
         if settings.sigma > 0:
             cal = load_split(settings.preset, "calibration", seed=DATA_SEED, size=size,
                              frames_per_class=settings.calibration_per_class)
             calibration = (cal.images, cal.stiffness_n_per_rad, cal.labels)
-        records, summary = certify_regressor(model, images, labels, stiffness, calibration,
-                                             table.envelope(settings.preset), settings, progress)
+        records, summary = certify_regressor(model, EvalFrames(images, labels, stiffness),
+                                             table.envelope(settings.preset), settings, progress,
+                                             CalibrationInputs(frames=calibration))
     summary["training"] = training_of(model)
     if args.json:
         print(json.dumps(json_safe({"summary": summary, "records": records,

@@ -162,25 +162,53 @@ def _progress(progress: Callable[[Iterable], Iterable] | None, it: Iterable) -> 
     return progress(it) if progress is not None else it
 
 
-def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
-                       stiffness: torch.Tensor, label_names: list[str], table: ConditionsTable,
+@dataclasses.dataclass(frozen=True)
+class EvalFrames:
+    """The test frames a certification runs on."""
+
+    images: torch.Tensor  # [N, C, H, W] in [0, 1]
+    labels: torch.Tensor  # [N] true label indices
+    stiffness: torch.Tensor  # [N] true tire stiffness, N/rad
+    label_names: tuple[str, ...] = ()  # the labels' condition names (classifier)
+
+
+@dataclasses.dataclass(frozen=True)
+class CalibrationInputs:
+    """What a certification may start from besides its test frames (all optional).
+
+    ``frames``: held-out calibration frames, ``(images, labels)`` for the classifier's robust
+    conformal interval, ``(images, stiffness, labels)`` for the regressor's conformal beta;
+    ``made``: a calibration made before with the same settings (skips calibrating);
+    ``clean_cache``: a dict of the classifier's clean certificates by frame index, filled and
+    read, so several attacks on the same frames share them.
+    """
+
+    frames: tuple | None = None
+    made: object = None
+    clean_cache: dict | None = None
+
+
+def certify_classifier(model: torch.nn.Module, frames: EvalFrames, table: ConditionsTable,
                        settings: CertifySettings,
                        progress: Callable[[Iterable], Iterable] | None = None,
-                       calibration: tuple | None = None, robust=None,
-                       clean_cache: dict | None = None) -> tuple[list[dict], dict]:
+                       inputs: CalibrationInputs | None = None) -> tuple[list[dict], dict]:
     """Certify (sigma > 0) or evaluate (sigma = 0) a classifier on frames, clean and attacked.
 
     For sigma > 0, each frame gets the certificate of :meth:`SmoothedClassifier.certify` with
     the safe set S(a) of the predicted label, at the clean frame and (when attacked) at the
     attacked frame, and the run-time interval at budget eps at the observed frame. With
-    ``settings.conformal``, ``calibration = (images, labels)`` of held-out frames calibrates
+    ``settings.conformal``, ``inputs.frames = (images, labels)`` of held-out frames calibrates
     the robust conformal interval (:mod:`drake_cert.certification.conformal`), reported
-    beside the certificate's interval from the same samples; ``robust``, a calibration made
-    before with the same settings, skips that step. Every frame and purpose draws from its own
-    stream (:meth:`CertifySettings.frame_streams`), so the clean certificate of frame i is the
-    same in every call with the same seed, n0, n and alpha: ``clean_cache`` (a dict, filled
-    and read by frame index) lets several attacks on the same frames share it.
+    beside the certificate's interval from the same samples; ``inputs.made``, a calibration
+    made before with the same settings, skips that step. Every frame and purpose draws from
+    its own stream (:meth:`CertifySettings.frame_streams`), so the clean certificate of frame
+    i is the same in every call with the same seed, n0, n and alpha: ``inputs.clean_cache``
+    (a dict, filled and read by frame index) lets several attacks on the same frames share it.
     """
+    inputs = inputs or CalibrationInputs()
+    images, labels, stiffness = frames.images, frames.labels, frames.stiffness
+    label_names = list(frames.label_names)
+    calibration, robust, clean_cache = inputs.frames, inputs.made, inputs.clean_cache
     settings.validate()
     model = with_precision(model, settings.precision)  # certify, attack, calibrate: one model
     k = len(label_names)
@@ -201,6 +229,7 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
             raise CertificationError("the conformal interval needs calibration frames")
         robust = calibrate_classifier(smooth, calibration, settings, progress)
     records = []
+    context = _RecordContext(robust, table, settings, label_names)
     for i in _progress(progress, range(len(images))):
         st = settings.frame_streams(i)
         clean = clean_cache.get(i) if clean_cache is not None else None
@@ -215,7 +244,7 @@ def certify_classifier(model: torch.nn.Module, images: torch.Tensor, labels: tor
                               seed=st["attacked_estimation"],
                               selection_seed=st["attacked_selection"]) if attacked else clean
         records.append(_certified_record(clean, seen, int(labels[i]), float(stiffness[i]),
-                                         robust, table, settings, label_names))
+                                         context))
     summary = summarize_classification(records, settings)
     summary["compile_seconds"] = smooth.compile_seconds
     if robust is not None:
@@ -235,10 +264,21 @@ def _base_records(model: torch.nn.Module, images: torch.Tensor, adversarial: tor
             for i in range(len(images))]
 
 
-def _certified_record(clean, seen, label: int, y: float, robust, table: ConditionsTable,
-                      settings: CertifySettings, label_names: list[str]) -> dict:
+@dataclasses.dataclass(frozen=True)
+class _RecordContext:
+    """What every frame's record of :func:`certify_classifier` is read against."""
+
+    robust: object  # the robust conformal calibration, or None
+    table: ConditionsTable
+    settings: CertifySettings
+    label_names: list[str]
+
+
+def _certified_record(clean, seen, label: int, y: float, context: _RecordContext) -> dict:
     """:func:`certify_classifier`'s record of one frame of true ``label`` and stiffness ``y``
     from its clean and seen (attacked, or clean) certificates."""
+    robust, table = context.robust, context.table
+    settings, label_names = context.settings, context.label_names
     rt = runtime_classification_interval(seen, table, settings.preset, settings.eps,
                                          label_names)
     extra = {}
@@ -382,18 +422,21 @@ def json_safe(value):
     return value
 
 
-def certify_regressor(model: torch.nn.Module, images: torch.Tensor, labels: torch.Tensor,
-                      stiffness: torch.Tensor, calibration: tuple | None,
+def certify_regressor(model: torch.nn.Module, frames: EvalFrames,
                       envelope: tuple[float, float], settings: CertifySettings,
                       progress: Callable[[Iterable], Iterable] | None = None,
-                      conformal=None) -> tuple[list[dict], dict]:
+                      inputs: CalibrationInputs | None = None) -> tuple[list[dict], dict]:
     """Median-smoothing certificates (sigma > 0) or plain predictions (sigma = 0) of a regressor.
 
-    ``calibration`` is ``(images, stiffness, labels)`` of calibration frames (sigma > 0): the
-    conformal beta is computed on them first (:func:`calibrate_conformal`); ``conformal``, a
-    :class:`ConformalCalibration` made before with the same settings, skips that. Each test frame
-    gets ``certify_interval`` at budget eps at the observed frame and the run-time interval.
+    ``inputs.frames`` is ``(images, stiffness, labels)`` of calibration frames (sigma > 0):
+    the conformal beta is computed on them first (:func:`calibrate_conformal`);
+    ``inputs.made``, a :class:`ConformalCalibration` made before with the same settings, skips
+    that. Each test frame gets ``certify_interval`` at budget eps at the observed frame and the
+    run-time interval.
     """
+    inputs = inputs or CalibrationInputs()
+    images, labels, stiffness = frames.images, frames.labels, frames.stiffness
+    calibration, conformal = inputs.frames, inputs.made
     settings.validate()
     model = with_precision(model, settings.precision)  # certify, attack, calibrate: one model
     if settings.sigma > 0:

@@ -40,7 +40,9 @@ from drake_cert.certification.seeds import frame_choice_seed
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from drake_cert.experiments.perception_eval import (
+    CalibrationInputs,
     CertifySettings,
+    EvalFrames,
     calibrate_classifier,
     calibrate_regressor,
     certify_classifier,
@@ -200,13 +202,14 @@ def run_preset(preset: str, ts: TableSettings, table: ConditionsTable, store: Ce
                 calibration = shared["calibration"]
             if task == "classify":
                 records, summary = certify_classifier(
-                    model, *frames, list(split.label_names), table, settings,
-                    bar(f"{preset} {key}"), robust=calibration,
-                    clean_cache=shared["clean_cache"] if sigma > 0 else None)
+                    model, EvalFrames(*frames, tuple(split.label_names)), table, settings,
+                    bar(f"{preset} {key}"), CalibrationInputs(
+                        made=calibration,
+                        clean_cache=shared["clean_cache"] if sigma > 0 else None))
             else:
                 records, summary = certify_regressor(
-                    model, *frames, None, table.envelope(preset), settings,
-                    bar(f"{preset} {key}"), conformal=calibration)
+                    model, EvalFrames(*frames), table.envelope(preset), settings,
+                    bar(f"{preset} {key}"), CalibrationInputs(made=calibration))
             cell = {"preset": preset, "task": task, "model": model_name, "sigma": sigma,
                     "attack": attack, "eps": eps, "summary": summary, "records": records,
                     "seconds": time.perf_counter() - start, "settings": identity,

@@ -27,7 +27,9 @@ from drake_cert.certification.seeds import frame_choice_seed
 from drake_cert.config import ConditionsTable
 from drake_cert.errors import ConfigError
 from drake_cert.experiments.perception_eval import (
+    CalibrationInputs,
     CertifySettings,
+    EvalFrames,
     certify_classifier,
     json_safe,
     select_frames,
@@ -115,9 +117,9 @@ def evaluate_candidate(model, test, settings: SweepSettings, table: ConditionsTa
     for attack in settings.attacks:
         for eps in settings.budgets:
             cs = settings.certify_settings(attack, eps)
-            _, summary = certify_classifier(model, images, labels, stiffness,
-                                            list(test.label_names), table, cs, progress,
-                                            clean_cache=clean_cache)
+            _, summary = certify_classifier(
+                model, EvalFrames(images, labels, stiffness, tuple(test.label_names)), table,
+                cs, progress, CalibrationInputs(clean_cache=clean_cache))
             row = {"attack": attack, "eps": eps, "frames": summary["frames"],
                    "accuracy": summary["accuracy"]}
             for name in OUTCOMES:
