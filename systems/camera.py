@@ -30,6 +30,7 @@ from drake_cert.perception.frames import (
 )
 from drake_cert.rng import torch_generator
 from drake_cert.systems.route import Route
+from drake_cert.systems.scenario import CameraSettings
 
 
 @dataclasses.dataclass(frozen=True)
@@ -56,9 +57,48 @@ class CameraFrame:
                            math.nan, math.nan)
 
 
-class CameraSource(LeafSystem):
-    """Camera at ``rate_hz`` looking ``look_ahead_m`` ahead along the route.
+@dataclasses.dataclass(frozen=True)
+class CameraSetup:
+    """What :class:`CameraSource` needs, checked and precomputed by :func:`camera_setup`."""
 
+    rate_hz: float  # frames per second
+    look_ahead_m: float  # the frame shows the road this far ahead (m)
+    frame_size: int  # frames are frame_size x frame_size RGB pixels
+    seed: int  # root of the camera's random stream
+    conditions: dict  # label name -> Condition of the preset
+    contrast: float  # the preset's camera contrast
+    folder: object = None  # the user's class-per-folder images (a FrameSet), or None
+
+
+def camera_setup(route: Route, conditions: ConditionsTable, preset: str,
+                 camera: CameraSettings, seed: int) -> CameraSetup:
+    """Check ``camera`` and load what the camera draws from: ConfigError for a rate or
+    look-ahead out of range, or a ``frames_dir`` without images of a route condition."""
+    rate_hz, look_ahead_m = camera.rate_hz, camera.look_ahead_m
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ConfigError(f"camera: rate_hz = {rate_hz!r} must be positive")
+    if not (math.isfinite(look_ahead_m) and look_ahead_m >= 0):
+        raise ConfigError(f"camera: look_ahead_m = {look_ahead_m!r} must be >= 0")
+    frame_size, frames_dir = int(camera.frame_size), camera.frames_dir
+    labels = list(conditions.preset(preset).labels)
+    folder = None
+    if frames_dir:
+        folder = load_image_folder(frames_dir, preset=preset, size=frame_size,
+                                   conditions=conditions)
+        for seg in route.segments:
+            if not bool((folder.labels == seg.label_index).any()):
+                raise ConfigError(f"camera: {frames_dir!r} has no images of "
+                                  f"{seg.condition!r}, a condition of the route")
+    return CameraSetup(float(rate_hz), float(look_ahead_m), frame_size, int(seed),
+                       {name: conditions.condition(name) for name in labels},
+                       CAMERA_CONTRAST.get(preset, 1.0), folder)
+
+
+class CameraSource(LeafSystem):
+    """Camera at ``camera.rate_hz`` looking ``camera.look_ahead_m`` ahead along the route.
+
+    ``camera``: a :class:`~drake_cert.systems.scenario.CameraSettings` (default: its
+    defaults, 10 Hz, 40 m, 64 px, rendered frames); ``seed``: root of the camera stream.
     Input ``arc_length_m`` (1, m). Outputs ``frame`` (abstract :class:`CameraFrame`, the
     state), ``seen_stiffness_n_per_rad`` (1, N/rad) and ``seen_label_index`` (1) of the seen
     segment (truth, for logs). The state before the first tick is the frame of the route
@@ -66,33 +106,16 @@ class CameraSource(LeafSystem):
     starting at s = 0).
     """
 
-    def __init__(self, route: Route, conditions: ConditionsTable, preset: str, *,
-                 rate_hz: float = 10.0, look_ahead_m: float = 40.0, frame_size: int = 64,
-                 seed: int = 0, frames_dir: str | None = None):
+    def __init__(self, route: Route, conditions: ConditionsTable, preset: str,
+                 camera: CameraSettings | None = None, *, seed: int = 0):
         super().__init__()
-        if not (math.isfinite(rate_hz) and rate_hz > 0):
-            raise ConfigError(f"camera: rate_hz = {rate_hz!r} must be positive")
-        if not (math.isfinite(look_ahead_m) and look_ahead_m >= 0):
-            raise ConfigError(f"camera: look_ahead_m = {look_ahead_m!r} must be >= 0")
-        self.route = route
-        self.preset = preset
-        self.rate_hz = float(rate_hz)
-        self.period_s = 1.0 / self.rate_hz
-        self.look_ahead_m = float(look_ahead_m)
-        self.frame_size = int(frame_size)
-        self.seed = int(seed)
-        self._labels = list(conditions.preset(preset).labels)
-        self._conditions = {name: conditions.condition(name) for name in self._labels}
-        self._contrast = CAMERA_CONTRAST.get(preset, 1.0)
-        self._folder = None
-        if frames_dir:
-            self._folder = load_image_folder(frames_dir, preset=preset, size=self.frame_size,
-                                             conditions=conditions)
-            for seg in route.segments:
-                if not bool((self._folder.labels == seg.label_index).any()):
-                    raise ConfigError(f"camera: {frames_dir!r} has no images of "
-                                      f"{seg.condition!r}, a condition of the route")
-
+        setup = camera_setup(route, conditions, preset, camera or CameraSettings(), seed)
+        self.route, self.preset = route, preset
+        self.rate_hz, self.period_s = setup.rate_hz, 1.0 / setup.rate_hz
+        self.look_ahead_m, self.frame_size, self.seed = (setup.look_ahead_m, setup.frame_size,
+                                                         setup.seed)
+        self._conditions, self._contrast = setup.conditions, setup.contrast
+        self._folder = setup.folder
         self._s = self.DeclareVectorInputPort("arc_length_m", 1)
         initial = self.capture(0.0, 0.0, 0)
         state_index = self.DeclareAbstractState(AbstractValue.Make(initial))

@@ -116,6 +116,98 @@ def _speed(design: ControllerDesign) -> float:
     return float(design.speed_mps) if design.has_safe_speed else 0.0
 
 
+@dataclasses.dataclass(frozen=True)
+class IntervalInputs:
+    """What the Diagram builder gives :class:`CertifiedInterval` beyond the scenario's blocks:
+    the calibrations, the vehicle's stiffness scale and the classifier's labels (see the
+    block's Args)."""
+
+    regression_beta: float = 0.0  # conformal beta of the regression interval (N/rad)
+    conformal: object = None  # a RobustConformalCalibration, or None (safe-set interval)
+    stiffness_scale: float = 1.0  # the vehicle's tire_stiffness_scale (dimensionless)
+    label_names: Sequence[str] | None = None  # default: the preset's
+
+
+@dataclasses.dataclass(frozen=True)
+class IntervalSetup:
+    """:class:`CertifiedInterval`'s checked settings and precomputed design lookups
+    (:func:`interval_setup`); the block's attributes of the same names."""
+
+    designs: list
+    conditions: ConditionsTable
+    preset: str
+    eps: float  # L2 budget of the run-time interval
+    mode: str  # "certified" or "base"
+    task: str  # "classify" or "regress"
+    beta: float  # regression beta (N/rad)
+    conformal: object
+    dwell_time_s: float  # least time between design switches (s)
+    stiffness_scale: float
+    family: tuple  # the preset's labels
+    label_names: tuple
+    envelope: tuple  # the family envelope (N/rad)
+    by_labels: dict  # label range -> index of its (first) design
+    envelope_index: int
+    join: dict | None  # (i, j) -> the design of the hull of both label ranges
+    period_s: float  # camera period (s)
+
+
+def _check_interval_settings(p: PerceptionSettings, dwell_time_s: float,
+                             inputs: IntervalInputs) -> None:
+    """ConfigError for a mode, task, eps, dwell time, beta or stiffness scale out of range."""
+    eps, mode, task = p.eps, p.pipeline, p.task
+    stiffness_scale, regression_beta = inputs.stiffness_scale, inputs.regression_beta
+    if mode not in ("certified", "base") or task not in ("classify", "regress"):
+        raise ConfigError(f"mode {mode!r} / task {task!r}: expected certified|base and "
+                          "classify|regress")
+    if not (math.isfinite(eps) and eps >= 0):
+        raise ConfigError(f"eps = {eps!r} must be a finite number >= 0")
+    if not (math.isfinite(dwell_time_s) and dwell_time_s >= 0):
+        raise ConfigError(f"dwell_time_s = {dwell_time_s!r} must be a finite number >= 0")
+    if not regression_beta >= 0:
+        raise ConfigError(f"regression_beta = {regression_beta!r} must be >= 0")
+    if not (math.isfinite(stiffness_scale) and stiffness_scale > 0):
+        raise ConfigError(f"stiffness_scale = {stiffness_scale!r} must be a positive number")
+
+
+def interval_setup(designs: Sequence[ControllerDesign], conditions: ConditionsTable,
+                   perception: PerceptionSettings | None = None,
+                   controller: ControllerScenario | None = None,
+                   camera: CameraSettings | None = None,
+                   inputs: IntervalInputs | None = None) -> IntervalSetup:
+    """Check :class:`CertifiedInterval`'s arguments and precompute its design lookups;
+    ConfigError for a setting out of range or a missing envelope (or, for classification,
+    label range) design."""
+    p = perception if perception is not None else PerceptionSettings()
+    controller = controller if controller is not None else ControllerScenario()
+    camera = camera if camera is not None else CameraSettings()
+    inputs = inputs if inputs is not None else IntervalInputs()
+    _check_interval_settings(p, controller.dwell_time_s, inputs)
+    preset, task, designs = p.preset, p.task, list(designs)
+    family = tuple(conditions.preset(preset).labels)
+    by_labels = {}
+    for i, d in enumerate(designs):
+        by_labels.setdefault(tuple(d.labels), i)
+    if family not in by_labels:
+        raise ConfigError(f"designs hold no envelope design (labels {list(family)})")
+    if task == "classify":
+        for rng in conditions.contiguous_ranges(preset):
+            if tuple(rng) not in by_labels:
+                raise ConfigError(f"designs hold no design for the label range {rng}")
+    complete = all(tuple(rng) in by_labels for rng in conditions.contiguous_ranges(preset))
+    # join[(i, j)]: the design of the hull of both label ranges (holds both); without
+    # every range's design (a partial regression table) held requests keep the old design.
+    join = (join_design_indices(designs, conditions, preset)
+            if complete and all(d.labels for d in designs) else None)
+    names = inputs.label_names
+    return IntervalSetup(
+        designs, conditions, preset, float(p.eps), p.pipeline, task,
+        float(inputs.regression_beta), inputs.conformal, float(controller.dwell_time_s),
+        float(inputs.stiffness_scale), family,
+        tuple(names) if names is not None else family, conditions.envelope(preset), by_labels,
+        by_labels[family], join, 1.0 / float(camera.rate_hz))
+
+
 class CertifiedInterval(LeafSystem):
     """Input ``perception`` (abstract :class:`PerceptionResult`); abstract state and output
     ``decision`` (:class:`Decision`); vector outputs ``interval_n_per_rad`` (2, N/rad),
@@ -148,79 +240,41 @@ class CertifiedInterval(LeafSystem):
             must then be the table as scaled for this vehicle (the designs' intervals).
             Classification reads label ranges, which need no scaling.
         label_names: the classifier's label names (default: the preset's).
+
+    ``regression_beta``, ``conformal``, ``stiffness_scale`` and ``label_names`` come in one
+    :class:`IntervalInputs`; :func:`interval_setup` checks everything and precomputes the
+    design lookups.
     """
 
     def __init__(self, designs: Sequence[ControllerDesign], conditions: ConditionsTable,
                  perception: PerceptionSettings | None = None,
                  controller: ControllerScenario | None = None,
-                 camera: CameraSettings | None = None, *, regression_beta: float = 0.0,
-                 conformal=None, stiffness_scale: float = 1.0,
-                 label_names: Sequence[str] | None = None):
+                 camera: CameraSettings | None = None, inputs: IntervalInputs | None = None):
         super().__init__()
-        p = perception if perception is not None else PerceptionSettings()
-        controller = controller if controller is not None else ControllerScenario()
-        camera = camera if camera is not None else CameraSettings()
-        preset, eps, mode, task = p.preset, p.eps, p.pipeline, p.task
-        dwell_time_s = controller.dwell_time_s
-        if mode not in ("certified", "base") or task not in ("classify", "regress"):
-            raise ConfigError(f"mode {mode!r} / task {task!r}: expected certified|base and "
-                              "classify|regress")
-        if not (math.isfinite(eps) and eps >= 0):
-            raise ConfigError(f"eps = {eps!r} must be a finite number >= 0")
-        if not (math.isfinite(dwell_time_s) and dwell_time_s >= 0):
-            raise ConfigError(f"dwell_time_s = {dwell_time_s!r} must be a finite number >= 0")
-        if not regression_beta >= 0:
-            raise ConfigError(f"regression_beta = {regression_beta!r} must be >= 0")
-        if not (math.isfinite(stiffness_scale) and stiffness_scale > 0):
-            raise ConfigError(f"stiffness_scale = {stiffness_scale!r} must be a positive number")
-        self.stiffness_scale = float(stiffness_scale)
-        self.designs = list(designs)
-        self.conditions, self.preset = conditions, preset
-        self.eps, self.mode, self.task = float(eps), mode, task
-        self.beta = float(regression_beta)
-        self.conformal = conformal
-        self.dwell_time_s = float(dwell_time_s)
-        self.family = tuple(conditions.preset(preset).labels)
-        self.label_names = tuple(label_names) if label_names is not None else self.family
-        self.envelope = conditions.envelope(preset)
-        self._by_labels = {}
-        for i, d in enumerate(self.designs):
-            self._by_labels.setdefault(tuple(d.labels), i)
-        if self.family not in self._by_labels:
-            raise ConfigError(f"designs hold no envelope design (labels {list(self.family)})")
-        self.envelope_index = self._by_labels[self.family]
-        if task == "classify":
-            for rng in conditions.contiguous_ranges(preset):
-                if tuple(rng) not in self._by_labels:
-                    raise ConfigError(f"designs hold no design for the label range {rng}")
-        complete = all(tuple(rng) in self._by_labels
-                       for rng in conditions.contiguous_ranges(preset))
-        # join[(i, j)]: the design of the hull of both label ranges (holds both); without
-        # every range's design (a partial regression table) held requests keep the old design.
-        self._join = (join_design_indices(self.designs, conditions, preset)
-                      if complete and all(d.labels for d in self.designs) else None)
-
-        period = 1.0 / float(camera.rate_hz)
-        self.offset_s = OFFSET_FRACTION * period
+        s = interval_setup(designs, conditions, perception, controller, camera, inputs)
+        self.designs, self.conditions, self.preset = s.designs, s.conditions, s.preset
+        self.eps, self.mode, self.task, self.beta = s.eps, s.mode, s.task, s.beta
+        self.conformal, self.dwell_time_s = s.conformal, s.dwell_time_s
+        self.stiffness_scale, self.family, self.label_names = (s.stiffness_scale, s.family,
+                                                               s.label_names)
+        self.envelope, self.envelope_index = s.envelope, s.envelope_index
+        self._by_labels, self._join = s.by_labels, s.join
+        self.offset_s = OFFSET_FRACTION * s.period_s
         initial = self.initial_state()
         self.DeclareAbstractInputPort("perception", AbstractValue.Make(
-            PerceptionResult.no_frame(mode, task)))
+            PerceptionResult.no_frame(s.mode, s.task)))
         state_index = self.DeclareAbstractState(AbstractValue.Make(initial))
-        self.DeclarePeriodicUnrestrictedUpdateEvent(period, self.offset_s, self._update)
+        self.DeclarePeriodicUnrestrictedUpdateEvent(s.period_s, self.offset_s, self._update)
         state = {self.abstract_state_ticket(state_index)}
         self.DeclareAbstractOutputPort("decision", lambda: AbstractValue.Make(initial.decision),
                                        self._calc_decision, prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("interval_n_per_rad", 2, self._calc_interval,
-                                     prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("design_index", 1, self._calc_index,
-                                     prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("speed_command_mps", 1, self._calc_speed,
-                                     prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("certified_radius", 1, self._calc_radius,
-                                     prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("status", 1, self._calc_status, prerequisites_of_calc=state)
-        self.DeclareVectorOutputPort("requested_design_index", 1, self._calc_requested,
-                                     prerequisites_of_calc=state)
+        for name, size, calc in (("interval_n_per_rad", 2, self._calc_interval),
+                                 ("design_index", 1, self._calc_index),
+                                 ("speed_command_mps", 1, self._calc_speed),
+                                 ("certified_radius", 1, self._calc_radius),
+                                 ("status", 1, self._calc_status),
+                                 ("requested_design_index", 1, self._calc_requested)):
+            self.DeclareVectorOutputPort(name, size, calc, prerequisites_of_calc=state)
 
     # ------------------------------------------------------------------ the decision
     def _decision(self, p: PerceptionResult, index: int, status: str, radius: float,

@@ -58,7 +58,7 @@ from drake_cert.synthesis.selection import (
 )
 from drake_cert.systems.attacker import Attacker
 from drake_cert.systems.camera import CameraSource
-from drake_cert.systems.certified_interval import CertifiedInterval
+from drake_cert.systems.certified_interval import CertifiedInterval, IntervalInputs
 from drake_cert.systems.longitudinal import (
     BRAKING_MARGIN_M,
     ENVELOPE_DECEL_FRACTION,
@@ -635,10 +635,7 @@ def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
     scenario, tires, table = parts.scenario, parts.tires, parts.table
     p, cam, att = scenario.perception, scenario.camera, scenario.attack
     add = b.AddNamedSystem
-    camera = add("camera", CameraSource(parts.route, tires, p.preset, rate_hz=cam.rate_hz,
-                                        look_ahead_m=cam.look_ahead_m,
-                                        frame_size=cam.frame_size, seed=scenario.seed,
-                                        frames_dir=cam.frames_dir or None))
+    camera = add("camera", CameraSource(parts.route, tires, p.preset, cam, seed=scenario.seed))
     # The attacker attacks the pipeline's own model: SmoothAdv on g at perception.sigma
     # (certified), PGD on f without noise (base), whatever the scenario's attack.target.
     attacker = add("attacker", Attacker(
@@ -649,9 +646,9 @@ def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
         ranges=candidate_ranges(tires, p.preset, parts.labels),
         alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal))
     interval = add("certified_interval", CertifiedInterval(
-        table, tires, p, scenario.controller, cam, regression_beta=parts.regression_beta,
-        conformal=parts.conformal, stiffness_scale=parts.vehicle.tire_stiffness_scale,
-        label_names=parts.labels))
+        table, tires, p, scenario.controller, cam, IntervalInputs(
+            regression_beta=parts.regression_beta, conformal=parts.conformal,
+            stiffness_scale=parts.vehicle.tire_stiffness_scale, label_names=parts.labels)))
     return dict(camera=camera, attacker=attacker, perception=perception, interval=interval)
 
 

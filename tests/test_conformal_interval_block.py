@@ -11,7 +11,7 @@ from drake_cert.certification.statistics import clopper_pearson_bounds, safe_set
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.synthesis.selection import preset_designs
 from drake_cert.synthesis.table import synthesize_table
-from drake_cert.systems.certified_interval import CertifiedInterval
+from drake_cert.systems.certified_interval import CertifiedInterval, IntervalInputs
 from drake_cert.systems.perception_smoothing import PerceptionResult
 from drake_cert.systems.scenario import PerceptionSettings
 
@@ -50,7 +50,7 @@ def test_a_confidently_wrong_vote_keeps_the_true_stiffness_only_with_the_conform
     p = result_with_votes([900, 100, 0], true_label=1, stiffness=74_800.0)
     safe_set = CertifiedInterval(designs, conditions, PERCEPTION).request(p)
     conformal = CertifiedInterval(designs, conditions, PERCEPTION,
-                                  conformal=calibration).request(p)
+                                  inputs=IntervalInputs(conformal=calibration)).request(p)
     lo, hi = safe_set.interval
     assert not lo <= 74_800.0 <= hi  # the safe-set interval trusts g and misses
     lo, hi = conformal.interval
@@ -66,6 +66,6 @@ def test_the_conformal_block_falls_back_to_the_envelope_when_every_label_qualifi
                                              num_classes=3, sigma=SIGMA, n=1000)
     p = result_with_votes([1000, 0, 0], true_label=0, stiffness=100_000.0)
     decision = CertifiedInterval(designs, conditions, PERCEPTION,
-                                 conformal=calibration).request(p)
+                                 inputs=IntervalInputs(conformal=calibration)).request(p)
     assert decision.status == "envelope"
     assert decision.interval == tuple(conditions.envelope(PRESET))

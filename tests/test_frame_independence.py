@@ -16,6 +16,7 @@ from drake_cert.config import load_conditions
 from drake_cert.perception.models import load_model
 from drake_cert.systems.camera import CameraSource
 from drake_cert.systems.route import Route, SegmentSpec
+from drake_cert.systems.scenario import CameraSettings
 
 
 def _camera(stiffness_n_per_rad=None):
@@ -26,8 +27,8 @@ def _camera(stiffness_n_per_rad=None):
         segs = list(route.segments)
         segs[0] = dataclasses.replace(segs[0], stiffness_n_per_rad=float(stiffness_n_per_rad))
         route = Route(segs, route.transition_m)
-    return CameraSource(route, conditions, "robotcar-like", rate_hz=10.0, look_ahead_m=0.0,
-                        seed=5)
+    return CameraSource(route, conditions, "robotcar-like",
+                        CameraSettings(rate_hz=10.0, look_ahead_m=0.0), seed=5)
 
 
 def test_a_ticks_frame_depends_on_its_tick_and_the_stretch_under_its_look_point_only():

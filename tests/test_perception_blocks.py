@@ -13,10 +13,15 @@ from drake_cert.perception.models import load_model
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.systems.attacker import Attacker
 from drake_cert.systems.camera import CameraSource
-from drake_cert.systems.certified_interval import STATUS_CODES, CertifiedInterval
+from drake_cert.systems.certified_interval import STATUS_CODES, CertifiedInterval, IntervalInputs
 from drake_cert.systems.perception_smoothing import PerceptionResult, PerceptionSmoothing
 from drake_cert.systems.route import Route, SegmentSpec
-from drake_cert.systems.scenario import AttackSettingsYaml, ControllerScenario, PerceptionSettings
+from drake_cert.systems.scenario import (
+    AttackSettingsYaml,
+    CameraSettings,
+    ControllerScenario,
+    PerceptionSettings,
+)
 
 PRESET = "robotcar-like"
 SIGMA = 0.25
@@ -88,7 +93,7 @@ def _eval(system, port, simulator):
 
 
 def test_camera_shows_the_segment_at_the_look_ahead_point(route, conditions):
-    camera = CameraSource(route, conditions, PRESET, look_ahead_m=40.0, seed=1)
+    camera = CameraSource(route, conditions, PRESET, CameraSettings(look_ahead_m=40.0), seed=1)
     context = camera.CreateDefaultContext()
     simulator = Simulator(camera, context)
     for k, (s, index) in enumerate([(5.0, 0), (10.0, 1), (15.0, 1), (70.0, 2)]):
@@ -253,7 +258,7 @@ def test_a_regression_interval_never_takes_a_design_with_more_friction_than_it_c
                                     table.least_friction(rng), [0.0] * 4, 30.0, 100.0, 10.0))
     block = CertifiedInterval(rtk, table, PerceptionSettings(preset="rtk-like", eps=EPS,
                                                              task="regress"),
-                              regression_beta=1000.0)
+                              inputs=IntervalInputs(regression_beta=1000.0))
     result = PerceptionResult(time_s=0.025, tick=0, position_m=40.0, frame_ok=True, error="",
                               mode="certified", task="regress",
                               regression=(50_000.0, 48_000.0, 52_000.0))
@@ -276,5 +281,5 @@ def test_certified_regression_at_a_clean_frame_runs_in_the_diagram(route, condit
     median, lower, upper = result.regression
     assert lower <= median <= upper
     decision = CertifiedInterval(designs, conditions, regress,
-                                 regression_beta=math.inf).request(result)
+                                 inputs=IntervalInputs(regression_beta=math.inf)).request(result)
     assert decision.status == "envelope"  # an infinite beta certifies nothing narrower

@@ -103,7 +103,7 @@ def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chose
         suv_carla_designs):
     """A regressor estimates the reference tire's stiffness: the SUV's is scale times it."""
     from drake_cert.errors import ConfigError
-    from drake_cert.systems.certified_interval import CertifiedInterval
+    from drake_cert.systems.certified_interval import CertifiedInterval, IntervalInputs
     from drake_cert.systems.perception_smoothing import PerceptionResult
     from drake_cert.systems.scenario import PerceptionSettings
 
@@ -111,7 +111,7 @@ def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chose
     scale = SUV.tire_stiffness_scale
     tires = conditions.with_stiffness_scale(scale)
     base = PerceptionSettings(preset="carla-like", eps=0.0, pipeline="base", task="regress")
-    block = CertifiedInterval(designs, tires, base, stiffness_scale=scale)
+    block = CertifiedInterval(designs, tires, base, inputs=IntervalInputs(stiffness_scale=scale))
     wet_lo, _ = conditions.condition("heavy_rain").interval  # reference tire
     p = dataclasses.replace(PerceptionResult.no_frame("base", "regress"), frame_ok=True,
                             base_value_n_per_rad=wet_lo)  # below every scaled interval
@@ -122,4 +122,4 @@ def test_a_regressed_stiffness_is_scaled_to_the_vehicle_before_a_design_is_chose
     assert unscaled.request(p).status == "envelope"  # no SUV design holds the raw value
     with pytest.raises(ConfigError, match="stiffness_scale"):
         CertifiedInterval(designs, tires, PerceptionSettings(preset="carla-like", eps=0.0),
-                          stiffness_scale=0.0)
+                          inputs=IntervalInputs(stiffness_scale=0.0))

@@ -232,14 +232,15 @@ class FrameWorker:
     def _interval(self, preset: str, cell: tuple, conformal=None):
         """The Diagram's certified-interval block for one cell."""
         from drake_cert.synthesis.selection import preset_designs
-        from drake_cert.systems.certified_interval import CertifiedInterval
+        from drake_cert.systems.certified_interval import CertifiedInterval, IntervalInputs
 
         pipeline, sigma, _, _ = cell
         beta = self.beta(preset, sigma) if pipeline == "h" else 0.0
         return CertifiedInterval(
             preset_designs(self.designs, self.conditions, preset), self.conditions,
-            cell_perception(self.config, preset, cell), regression_beta=beta, conformal=conformal,
-            label_names=list(self.conditions.preset(preset).labels))
+            cell_perception(self.config, preset, cell), inputs=IntervalInputs(
+                regression_beta=beta, conformal=conformal,
+                label_names=list(self.conditions.preset(preset).labels)))
 
     def decision_rule(self, preset: str, cell: tuple) -> str:
         """"never" for a certifying cell whose budget n samples can never certify (its rows
