@@ -68,7 +68,11 @@ from drake_cert.systems.longitudinal import (
     look_ahead_needed_m,
     supported_speed_mps,
 )
-from drake_cert.systems.perception_smoothing import PerceptionSmoothing, check_decision_budget
+from drake_cert.systems.perception_smoothing import (
+    PerceptionInputs,
+    PerceptionSmoothing,
+    check_decision_budget,
+)
 from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
 from drake_cert.systems.route import Route, RouteSource
 from drake_cert.systems.scenario import Scenario
@@ -642,9 +646,9 @@ def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
         dataclasses.replace(att, target="smoothed" if parts.certified else "base"), p, cam,
         model=parts.model, seed=scenario.seed))
     perception = add("perception_smoothing", PerceptionSmoothing(
-        parts.evaluated, p, cam, seed=scenario.seed, label_names=parts.labels,
-        ranges=candidate_ranges(tires, p.preset, parts.labels),
-        alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal))
+        parts.evaluated, p, cam, seed=scenario.seed, inputs=PerceptionInputs(
+            label_names=parts.labels, ranges=candidate_ranges(tires, p.preset, parts.labels),
+            alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal)))
     interval = add("certified_interval", CertifiedInterval(
         table, tires, p, scenario.controller, cam, IntervalInputs(
             regression_beta=parts.regression_beta, conformal=parts.conformal,

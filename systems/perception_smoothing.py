@@ -122,6 +122,106 @@ def _holding(ranges):
     return lambda label: [c for c in ranges if label in c]
 
 
+@dataclasses.dataclass(frozen=True)
+class PerceptionInputs:
+    """What the Diagram builder gives :class:`PerceptionSmoothing` beyond the scenario's
+    blocks: the labels, the candidate ranges, the alpha spending and the conformal
+    calibration (see the block's Args)."""
+
+    label_names: list[str] | tuple[str, ...] = ()  # the classifier's labels, grippiest first
+    ranges: object = None  # candidate label ranges / median intervals (N/rad), or None
+    alpha_spending: AlphaSpending | None = None  # None: alpha per decision
+    conformal: RobustConformalCalibration | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class SmoothingSetup:
+    """:class:`PerceptionSmoothing`'s checked settings and its smoothed model
+    (:func:`smoothing_setup`); the block's attributes of the same names."""
+
+    model: torch.nn.Module  # in eval mode
+    device: torch.device
+    mode: str
+    task: str
+    decision: str  # "sequential" or "fixed" (regression without ranges: fixed)
+    ranges: object
+    n0: int
+    n: int
+    alpha_spending: AlphaSpending | None
+    conformal: RobustConformalCalibration | None
+    alpha: float  # the largest alpha a decision gets
+    batch_size: int
+    seed: int
+    eps: float  # L2 budget (pixel units)
+    label_names: tuple[str, ...]
+    frame_shape: tuple[int, int, int]
+    period_s: float  # camera period (s)
+    smooth: object  # SmoothedClassifier / MedianSmoothedRegressor, or None in base mode
+
+
+def _check_perception_modes(p: PerceptionSettings, rate_hz: float) -> None:
+    """ConfigError for a mode, task, decision or camera rate out of range."""
+    mode, task, decision = p.pipeline, p.task, p.resolved_decision
+    if mode not in MODES:
+        raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
+    if task not in TASKS:
+        raise ConfigError(f"perception task {task!r}; expected one of {', '.join(TASKS)}")
+    if decision not in DECISIONS:
+        raise ConfigError(f"perception decision {decision!r}; expected one of "
+                          f"{', '.join(DECISIONS)}")
+    if not (math.isfinite(rate_hz) and rate_hz > 0):
+        raise ConfigError(f"perception: rate_hz = {rate_hz!r} must be positive")
+
+
+def _smoothed_model(model, p: PerceptionSettings, s: dict, runtime: ModelRuntime):
+    """The certified mode's smoothed model, after the checks that n can certify (``s``: the
+    setup's fields so far); None in base mode."""
+    if p.pipeline != "certified":
+        return None
+    sigma, device = p.sigma, runtime.device
+    if p.task == "classify":
+        if len(s["label_names"]) < 2:
+            raise ConfigError("perception: classification needs label_names (>= 2)")
+        if s["decision"] == "fixed":
+            check_enough_samples(s["n"], s["alpha"], len(s["label_names"]))
+        elif s["conformal"] is None:
+            check_decision_budget(s["n"], s["alpha"], s["eps"], sigma, s["ranges"])
+        return SmoothedClassifier(model, len(s["label_names"]), sigma,
+                                  compile=runtime.compile, device=device)
+    if s["decision"] == "fixed":
+        percentile_bound_indices(s["n"], s["eps"], sigma, s["alpha"])
+    return MedianSmoothedRegressor(model, sigma, compile=runtime.compile, device=device)
+
+
+def smoothing_setup(model: torch.nn.Module, perception: PerceptionSettings | None = None,
+                    camera: CameraSettings | None = None, seed: int = 0,
+                    inputs: PerceptionInputs | None = None,
+                    runtime: ModelRuntime | None = None) -> SmoothingSetup:
+    """Check :class:`PerceptionSmoothing`'s arguments (ConfigError naming the first bad one,
+    including an n that can never certify) and build its smoothed model."""
+    p = perception if perception is not None else PerceptionSettings()
+    camera = camera if camera is not None else CameraSettings()
+    runtime = runtime if runtime is not None else ModelRuntime()
+    inputs = inputs if inputs is not None else PerceptionInputs()
+    _check_perception_modes(p, camera.rate_hz)
+    model = model.eval()
+    spending, ranges = inputs.alpha_spending, inputs.ranges
+    s = dict(
+        model=model, device=torch.device(runtime.device), mode=p.pipeline, task=p.task,
+        # regression decides sequentially only over given candidate intervals (``ranges``)
+        decision=(p.resolved_decision if p.task == "classify" or ranges is not None
+                  else "fixed"),
+        ranges=ranges, n0=int(p.n0), n=int(p.n), alpha_spending=spending,
+        conformal=inputs.conformal,
+        # the largest alpha a decision gets (the checks: n must reach it)
+        alpha=float(p.alpha) if spending is None else spending.planned_alpha,
+        batch_size=int(p.batch_size), seed=int(seed), eps=float(p.eps),
+        label_names=tuple(inputs.label_names),
+        frame_shape=(3, int(camera.frame_size), int(camera.frame_size)),
+        period_s=1.0 / float(camera.rate_hz))
+    return SmoothingSetup(**s, smooth=_smoothed_model(model, p, s, runtime))
+
+
 class PerceptionSmoothing(LeafSystem):
     """Input ``frame`` (abstract :class:`CameraFrame`); abstract state and output
     ``perception`` (:class:`PerceptionResult`); output ``samples`` (1): noisy samples drawn
@@ -153,67 +253,28 @@ class PerceptionSmoothing(LeafSystem):
             (:func:`~drake_cert.certification.conformal.sequential_label_set`, at most n
             samples); with ``"fixed"`` the certificate's votes give it downstream.
         runtime: where ``model`` runs and whether it is compiled (:class:`ModelRuntime`).
+
+    ``label_names``, ``ranges``, ``alpha_spending`` and ``conformal`` come in one
+    :class:`PerceptionInputs`; :func:`smoothing_setup` checks everything and builds the
+    smoothed model.
     """
 
     def __init__(self, model: torch.nn.Module, perception: PerceptionSettings | None = None,
                  camera: CameraSettings | None = None, *, seed: int = 0,
-                 label_names: list[str] | tuple[str, ...] = (), ranges=None,
-                 alpha_spending: AlphaSpending | None = None,
-                 conformal: RobustConformalCalibration | None = None,
-                 runtime: ModelRuntime | None = None):
+                 inputs: PerceptionInputs | None = None, runtime: ModelRuntime | None = None):
         super().__init__()
-        p = perception if perception is not None else PerceptionSettings()
-        camera = camera if camera is not None else CameraSettings()
-        runtime = runtime if runtime is not None else ModelRuntime()
-        mode, task, sigma, decision = p.pipeline, p.task, p.sigma, p.resolved_decision
-        rate_hz, frame_size, device = camera.rate_hz, camera.frame_size, runtime.device
-        if mode not in MODES:
-            raise ConfigError(f"perception mode {mode!r}; expected one of {', '.join(MODES)}")
-        if task not in TASKS:
-            raise ConfigError(f"perception task {task!r}; expected one of {', '.join(TASKS)}")
-        if decision not in DECISIONS:
-            raise ConfigError(f"perception decision {decision!r}; expected one of "
-                              f"{', '.join(DECISIONS)}")
-        if not (math.isfinite(rate_hz) and rate_hz > 0):
-            raise ConfigError(f"perception: rate_hz = {rate_hz!r} must be positive")
-        self.model = model.eval()
-        self.device = torch.device(device)
-        self.mode, self.task = mode, task
-        # regression decides sequentially only over given candidate intervals (``ranges``)
-        self.decision = decision if task == "classify" or ranges is not None else "fixed"
-        self.ranges = ranges
-        self.n0, self.n = int(p.n0), int(p.n)
-        self.alpha_spending = alpha_spending
-        self.conformal = conformal
-        # the largest alpha a decision gets (the checks below: n must reach it)
-        self.alpha = float(p.alpha) if alpha_spending is None else alpha_spending.planned_alpha
-        self.batch_size = int(p.batch_size)
-        self.seed = int(seed)
-        self.eps = float(p.eps)
-        self.label_names = tuple(label_names)
-        self.frame_shape = (3, int(frame_size), int(frame_size))
-        self.period_s = 1.0 / float(rate_hz)
+        s = smoothing_setup(model, perception, camera, seed, inputs, runtime)
+        self.model, self.device, self.mode, self.task = s.model, s.device, s.mode, s.task
+        self.decision, self.ranges, self.n0, self.n = s.decision, s.ranges, s.n0, s.n
+        self.alpha_spending, self.conformal, self.alpha = s.alpha_spending, s.conformal, s.alpha
+        self.batch_size, self.seed, self.eps = s.batch_size, s.seed, s.eps
+        self.label_names, self.frame_shape = s.label_names, s.frame_shape
+        self.period_s = s.period_s
         self.offset_s = OFFSET_FRACTION * self.period_s
-        self._smooth = None
-        if mode == "certified":
-            if task == "classify":
-                if len(self.label_names) < 2:
-                    raise ConfigError("perception: classification needs label_names (>= 2)")
-                if self.decision == "fixed":
-                    check_enough_samples(self.n, self.alpha, len(self.label_names))
-                elif conformal is None:
-                    check_decision_budget(self.n, self.alpha, self.eps, sigma, ranges)
-                self._smooth = SmoothedClassifier(model, len(self.label_names), sigma,
-                                                  compile=runtime.compile, device=device)
-            else:
-                if self.decision == "fixed":
-                    percentile_bound_indices(self.n, self.eps, sigma, self.alpha)
-                self._smooth = MedianSmoothedRegressor(model, sigma, compile=runtime.compile,
-                                                       device=device)
-
-        initial = PerceptionResult.no_frame(mode, task)
+        self._smooth = s.smooth
+        initial = PerceptionResult.no_frame(s.mode, s.task)
         self._in = self.DeclareAbstractInputPort(
-            "frame", AbstractValue.Make(CameraFrame.placeholder(int(frame_size))))
+            "frame", AbstractValue.Make(CameraFrame.placeholder(s.frame_shape[1])))
         state_index = self.DeclareAbstractState(AbstractValue.Make(initial))
         self.DeclarePeriodicUnrestrictedUpdateEvent(self.period_s, self.offset_s, self._update)
         state = {self.abstract_state_ticket(state_index)}

@@ -16,7 +16,7 @@ from drake_cert.errors import CertificationError
 from drake_cert.perception.models import load_model
 from drake_cert.systems.camera import CameraFrame
 from drake_cert.systems.driving import alpha_spending, certificate_failure_bound
-from drake_cert.systems.perception_smoothing import PerceptionSmoothing
+from drake_cert.systems.perception_smoothing import PerceptionInputs, PerceptionSmoothing
 from drake_cert.systems.scenario import PerceptionSettings, load_scenario
 
 
@@ -60,8 +60,10 @@ def test_each_tick_of_the_perception_block_decides_at_its_own_alpha():
     settings = PerceptionSettings(sigma=0.25, n0=0, n=200, batch_size=200, eps=0.1,
                                   decision="sequential")
     block = PerceptionSmoothing(load_model("robotcar-like", "classify", 0.25), settings,
-                                label_names=labels, ranges=[(0,), (1,), (2,), (0, 1), (1, 2)],
-                                alpha_spending=spending)
+                                inputs=PerceptionInputs(
+                                    label_names=labels,
+                                    ranges=[(0,), (1,), (2,), (0, 1), (1, 2)],
+                                    alpha_spending=spending))
     image = torch.full((3, 64, 64), 0.5)
     for tick in (0, 2, 3, 7):
         frame = CameraFrame(image=image, time_s=0.2 * tick, tick=tick, position_m=0.0,

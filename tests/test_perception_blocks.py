@@ -14,7 +14,11 @@ from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.systems.attacker import Attacker
 from drake_cert.systems.camera import CameraSource
 from drake_cert.systems.certified_interval import STATUS_CODES, CertifiedInterval, IntervalInputs
-from drake_cert.systems.perception_smoothing import PerceptionResult, PerceptionSmoothing
+from drake_cert.systems.perception_smoothing import (
+    PerceptionInputs,
+    PerceptionResult,
+    PerceptionSmoothing,
+)
 from drake_cert.systems.route import Route, SegmentSpec
 from drake_cert.systems.scenario import (
     AttackSettingsYaml,
@@ -73,8 +77,8 @@ def _pipeline(route, conditions, labels, designs, model, *, kind="none", seed=0,
     attacker = builder.AddSystem(Attacker(
         AttackSettingsYaml(kind, eps=EPS, target="base", steps=attack_steps), settings,
         model=model, seed=seed))
-    perception = builder.AddSystem(PerceptionSmoothing(model, settings, seed=seed,
-                                                       label_names=labels))
+    perception = builder.AddSystem(PerceptionSmoothing(
+        model, settings, seed=seed, inputs=PerceptionInputs(label_names=labels)))
     interval = builder.AddSystem(CertifiedInterval(designs, conditions, settings,
                                                    ControllerScenario(dwell_time_s=dwell)))
     builder.Connect(camera.GetOutputPort("frame"), attacker.GetInputPort("frame"))

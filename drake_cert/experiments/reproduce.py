@@ -283,7 +283,11 @@ class FrameWorker:
         """The Diagram's perception block for one cell (the cells of one noise owner draw from
         the same streams: the seed of :func:`noise_cell`)."""
         from drake_cert.certification.intervals import candidate_ranges
-        from drake_cert.systems.perception_smoothing import ModelRuntime, PerceptionSmoothing
+        from drake_cert.systems.perception_smoothing import (
+            ModelRuntime,
+            PerceptionInputs,
+            PerceptionSmoothing,
+        )
 
         c = self.config
         pipeline, sigma, _, _ = cell
@@ -298,8 +302,9 @@ class FrameWorker:
             ranges = None
         return PerceptionSmoothing(
             self.evaluated(preset, task, sigma), cell_perception(c, preset, cell, decision),
-            seed=seed, label_names=labels, ranges=ranges,
-            conformal=conformal if sequential else None, runtime=ModelRuntime(device=c.device))
+            seed=seed, inputs=PerceptionInputs(label_names=labels, ranges=ranges,
+                                               conformal=conformal if sequential else None),
+            runtime=ModelRuntime(device=c.device))
 
     def _median_candidates(self, preset: str, sigma: float) -> list:
         """h's candidate intervals of the median at (preset, sigma), from the preset's designs
