@@ -39,6 +39,33 @@ KINDS = ("none", "sa", "ea", "nan", "misshaped")
 TARGETS = ("base", "smoothed")
 
 
+def _check_attack(attack: AttackSettingsYaml, sigma: float, has_model: bool) -> None:
+    """ConfigError for a kind, target or eps out of range, an sa/ea attack without a model,
+    or a smoothed target without noise."""
+    kind, eps, target = attack.kind, attack.eps, attack.target
+    if kind not in KINDS:
+        raise ConfigError(f"attack kind {kind!r}; expected one of {', '.join(KINDS)}")
+    if target not in TARGETS:
+        raise ConfigError(f"attack target {target!r}; expected one of {', '.join(TARGETS)}")
+    if not (math.isfinite(eps) and eps >= 0):
+        raise ConfigError(f"attack eps = {eps!r} must be a finite number >= 0")
+    if kind in ("sa", "ea") and not has_model:
+        raise ConfigError(f"attack {kind!r} needs the perception model it attacks")
+    if target == "smoothed" and kind in ("sa", "ea") and not sigma > 0:
+        raise ConfigError(f"attack target 'smoothed' needs sigma > 0, got {sigma!r}")
+
+
+def attack_settings(attack: AttackSettingsYaml, perception: PerceptionSettings,
+                    has_model: bool) -> AttackSettings:
+    """The checked PGD settings of :class:`Attacker` (eps, steps, noise draws; no seed: each
+    tick gets its own); ConfigError as :func:`_check_attack` says."""
+    _check_attack(attack, perception.sigma, has_model)
+    settings = AttackSettings(eps=float(attack.eps), steps=int(attack.steps),
+                              noise_draws=int(attack.noise_draws))
+    settings.validate()
+    return settings
+
+
 class Attacker(LeafSystem):
     """Input ``frame`` (abstract :class:`CameraFrame`), output ``frame`` (perturbed copy).
 
@@ -61,27 +88,10 @@ class Attacker(LeafSystem):
         attack = attack if attack is not None else AttackSettingsYaml()
         perception = perception if perception is not None else PerceptionSettings()
         camera = camera if camera is not None else CameraSettings()
-        kind, eps, target, sigma = attack.kind, attack.eps, attack.target, perception.sigma
-        if kind not in KINDS:
-            raise ConfigError(f"attack kind {kind!r}; expected one of {', '.join(KINDS)}")
-        if target not in TARGETS:
-            raise ConfigError(f"attack target {target!r}; expected one of {', '.join(TARGETS)}")
-        if not (math.isfinite(eps) and eps >= 0):
-            raise ConfigError(f"attack eps = {eps!r} must be a finite number >= 0")
-        if kind in ("sa", "ea") and model is None:
-            raise ConfigError(f"attack {kind!r} needs the perception model it attacks")
-        if target == "smoothed" and kind in ("sa", "ea") and not sigma > 0:
-            raise ConfigError(f"attack target 'smoothed' needs sigma > 0, got {sigma!r}")
-        self.kind = kind
-        self.eps = float(eps)
-        self.target = target
-        self.model = model
-        self.sigma = float(sigma) if target == "smoothed" else 0.0
-        self.task = perception.task
-        self.seed = int(seed)
-        self._settings = AttackSettings(eps=self.eps, steps=int(attack.steps),
-                                        noise_draws=int(attack.noise_draws))
-        self._settings.validate()
+        self._settings = attack_settings(attack, perception, model is not None)
+        self.kind, self.eps, self.target = attack.kind, float(attack.eps), attack.target
+        self.model, self.task, self.seed = model, perception.task, int(seed)
+        self.sigma = float(perception.sigma) if attack.target == "smoothed" else 0.0
         placeholder = CameraFrame.placeholder(camera.frame_size)
         self._in = self.DeclareAbstractInputPort("frame", AbstractValue.Make(placeholder))
         self.DeclareAbstractOutputPort("frame", lambda: AbstractValue.Make(placeholder),
