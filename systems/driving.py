@@ -76,7 +76,7 @@ from drake_cert.systems.perception_smoothing import (
 from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
 from drake_cert.systems.route import Route, RouteSource
 from drake_cert.systems.scenario import Scenario
-from drake_cert.systems.switching_controller import SwitchingL1Controller
+from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingOptions
 
 OFF_ROAD_M = 5.0  # |e1| (m) at which a drive ends: the car has left its lane for good
 REST_LIMIT_S = 5.0  # a drive ends after the car has rested this long (a stop for good)
@@ -684,8 +684,10 @@ def _add_control(b: DiagramBuilder, parts: _DriveParts) -> dict:
     scenario, ctl, add = parts.scenario, parts.settings.controller, b.AddNamedSystem
     controller = add("switching_l1_controller", SwitchingL1Controller(
         vehicle=parts.vehicle, designs=parts.table, settings=parts.settings,
-        initial_design_index=parts.envelope, initial_speed_mps=parts.initial_speed_mps,
-        curvature_preview=ctl.preview_window_s > 0, law=scenario.controller.law))
+        options=SwitchingOptions(
+            law=scenario.controller.law, initial_design_index=parts.envelope,
+            initial_speed_mps=parts.initial_speed_mps,
+            curvature_preview=ctl.preview_window_s > 0)))
     limit = parts.vehicle.steering_limit_rad
     saturation = add("steering_saturation", Saturation([-limit], [limit]))
     plant = add("plant", NonlinearLateralPlant(parts.vehicle,

@@ -88,6 +88,45 @@ def scheduled_law(parameters: L1Parameters, curvature_preview: bool = False) -> 
     return ScheduledLaw(p, _affine_rows(update, 9 + n), _affine_rows(command, 5 + n)[0])
 
 
+@dataclasses.dataclass(frozen=True)
+class SwitchingOptions:
+    """How the switching controller runs (module docstring); the vehicle, designs and
+    settings are given beside it."""
+
+    law: str | None = None  # "piecewise_constant" or "gradient"; None: the leaf's own law
+    initial_design_index: int = 0  # active design before the first sample (into designs)
+    initial_speed_mps: float | None = None  # speed for the first schedule (None: the design's)
+    speed_step_mps: float = 0.1  # grid step of the speed schedule (m/s)
+    fast: bool = True  # steering from the cached row in C++ / the affine-row derivative
+    curvature_preview: bool = False  # the input curvature_preview_per_m (u_ff at kappa_p)
+
+
+def check_switching_options(designs: list[ControllerDesign], options: SwitchingOptions,
+                            leaf_law: str) -> SwitchingOptions:
+    """``options`` with ``law`` resolved (None: ``leaf_law``), checked for the leaf that runs
+    ``leaf_law``: ConfigError for an unknown law or one the leaf does not run, no designs, an
+    initial design out of range or a speed step that is not positive."""
+    law = leaf_law if options.law is None else options.law
+    if law not in l1_law.LAWS:
+        raise ConfigError(f"switching controller: law {law!r} is not supported; expected "
+                          f"one of {l1_law.LAWS}")
+    if law != leaf_law:
+        leaf = "SwitchingGradientL1Law" if leaf_law == "gradient" else "SwitchingL1Law"
+        raise ConfigError(f"switching controller: {leaf} runs the "
+                          f"{leaf_law!r} law, not {law!r}; SwitchingL1Controller(law="
+                          f"{law!r}) builds the leaf that runs it")
+    if not designs:
+        raise ConfigError("switching controller: designs is empty")
+    index, step = options.initial_design_index, options.speed_step_mps
+    if not 0 <= index < len(designs):
+        raise ConfigError(f"switching controller: initial_design_index = "
+                          f"{index!r} not in [0, {len(designs)})")
+    if not (math.isfinite(step) and step > 0):
+        raise ConfigError(f"switching controller: speed_step_mps = {step!r} "
+                          "must be positive")
+    return dataclasses.replace(options, law=law)
+
+
 class SwitchingL1Law(LeafSystem):
     """Piecewise-constant L1 law over a list of designs, switched and speed-scheduled at run
     time without rebuilding the Diagram (module docstring); the Python leaf of
@@ -95,35 +134,20 @@ class SwitchingL1Law(LeafSystem):
     ``command_row`` r = [gains on s (4), gain on kappa, offset] with u = r . [s, kappa, 1],
     a function of the discrete state only (cached between samples); with
     ``curvature_preview`` the input ``curvature_preview_per_m`` and r = [gains on s (4), on
-    kappa, on kappa_p, offset] with u = r . [s, kappa, kappa_p, 1]."""
+    kappa, on kappa_p, offset] with u = r . [s, kappa, kappa_p, 1].
+
+    ``options`` (:class:`SwitchingOptions`, checked by :func:`check_switching_options`):
+    law, initial design and speed, speed grid step, fast path and road preview."""
 
     def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
-                 settings: Settings, law: str = "piecewise_constant",
-                 initial_design_index: int = 0, initial_speed_mps: float | None = None,
-                 speed_step_mps: float = 0.1, fast: bool = True,
-                 curvature_preview: bool = False):
+                 settings: Settings, options: SwitchingOptions | None = None):
         super().__init__()
-        if law not in l1_law.LAWS:
-            raise ConfigError(f"switching controller: law {law!r} is not supported; expected "
-                              f"one of {l1_law.LAWS}")
-        if law != self.LAW:
-            raise ConfigError(f"switching controller: {type(self).__name__} runs the "
-                              f"{self.LAW!r} law, not {law!r}; SwitchingL1Controller(law="
-                              f"{law!r}) builds the leaf that runs it")
-        if not designs:
-            raise ConfigError("switching controller: designs is empty")
-        if not 0 <= initial_design_index < len(designs):
-            raise ConfigError(f"switching controller: initial_design_index = "
-                              f"{initial_design_index!r} not in [0, {len(designs)})")
-        if not (math.isfinite(speed_step_mps) and speed_step_mps > 0):
-            raise ConfigError(f"switching controller: speed_step_mps = {speed_step_mps!r} "
-                              "must be positive")
+        o = check_switching_options(designs, options or SwitchingOptions(), self.LAW)
         self.vehicle, self.designs, self.settings = vehicle, list(designs), settings
         self.speed_min_mps = float(settings.synthesis.speed_min_mps)
-        self.speed_step_mps = float(speed_step_mps)
+        self.speed_step_mps = float(o.speed_step_mps)
         self.sample_period_s = float(settings.controller.sample_period_s)
-        self.fast = bool(fast)
-        self.curvature_preview = bool(curvature_preview)
+        self.fast, self.curvature_preview = bool(o.fast), bool(o.curvature_preview)
         self._cache: dict[tuple[int, int], ScheduledLaw] = {}
 
         self._s = self.DeclareVectorInputPort("state", 4)
@@ -132,13 +156,7 @@ class SwitchingL1Law(LeafSystem):
         self._design = self.DeclareVectorInputPort("design_index", 1)
         self._kappa_p = (self.DeclareVectorInputPort("curvature_preview_per_m", 1)
                          if self.curvature_preview else None)
-        d0 = int(initial_design_index)
-        v0 = designs[d0].speed_mps if initial_speed_mps is None else initial_speed_mps
-        z0 = np.zeros(STATE_SIZE)
-        z0[DESIGN] = d0
-        z0[GRID] = self.grid_index(d0, v0 if v0 > 0 else self.speed_min_mps)
-        z0[STOPPED] = 0.0 if v0 >= self.speed_min_mps else 1.0
-        self._z = self.DeclareDiscreteState(BasicVector(z0))
+        self._z = self.DeclareDiscreteState(BasicVector(self._initial_discrete_state(o)))
         self._declare_sampling()
         self.DeclareVectorOutputPort("steering_rad", 1, self._command)
         xd = {self.xd_ticket()}
@@ -153,6 +171,19 @@ class SwitchingL1Law(LeafSystem):
                                      prerequisites_of_calc=self._command_row_tickets())
 
     LAW = "piecewise_constant"  # the law this leaf runs (SwitchingGradientL1Law: "gradient")
+
+    def _initial_discrete_state(self, options: SwitchingOptions) -> np.ndarray:
+        """The discrete state before the first sample: the initial design, the grid point of
+        the initial speed (the design's safe speed by default) and stopped below the stop
+        speed."""
+        d0 = int(options.initial_design_index)
+        v0 = (self.designs[d0].speed_mps if options.initial_speed_mps is None
+              else options.initial_speed_mps)
+        z0 = np.zeros(STATE_SIZE)
+        z0[DESIGN] = d0
+        z0[GRID] = self.grid_index(d0, v0 if v0 > 0 else self.speed_min_mps)
+        z0[STOPPED] = 0.0 if v0 >= self.speed_min_mps else 1.0
+        return z0
 
     def _declare_sampling(self) -> None:
         """The sample every T_s: a periodic discrete update (the law is all discrete state)."""
@@ -386,8 +417,9 @@ class SwitchingGradientL1Law(SwitchingL1Law):
     LAW = "gradient"
     STATE_SIZE = sum(size for _, size in l1_law.GRADIENT_STATE)  # 11
 
-    def __init__(self, *, law: str = "gradient", **kwargs):
-        super().__init__(law=law, **kwargs)
+    def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
+                 settings: Settings, options: SwitchingOptions | None = None):
+        super().__init__(vehicle=vehicle, designs=designs, settings=settings, options=options)
         self._gradient: dict[tuple[int, int], GradientConstants] = {}
 
     def _declare_sampling(self) -> None:
@@ -555,17 +587,16 @@ class SwitchingL1Controller(Diagram):
     """
 
     def __init__(self, *, vehicle: VehicleParams, designs: list[ControllerDesign],
-                 settings: Settings, law: str = "piecewise_constant",
-                 initial_design_index: int = 0, initial_speed_mps: float | None = None,
-                 speed_step_mps: float = 0.1, fast: bool = True,
-                 curvature_preview: bool = False):
+                 settings: Settings, options: SwitchingOptions | None = None):
         super().__init__()
+        options = options or SwitchingOptions()
+        law = options.law or "piecewise_constant"
+        fast, curvature_preview = options.fast, options.curvature_preview
         builder = DiagramBuilder()
         leaf = SwitchingGradientL1Law if law == "gradient" else SwitchingL1Law
         self._law = builder.AddNamedSystem("switching_l1_law", leaf(
-            vehicle=vehicle, designs=designs, settings=settings, law=law,
-            initial_design_index=initial_design_index, initial_speed_mps=initial_speed_mps,
-            speed_step_mps=speed_step_mps, fast=fast, curvature_preview=curvature_preview))
+            vehicle=vehicle, designs=designs, settings=settings,
+            options=dataclasses.replace(options, law=law)))
         curvature_ports = ["curvature_per_m"] + \
             (["curvature_preview_per_m"] if curvature_preview else [])
         for name in ("state", *curvature_ports, "speed_mps", "design_index"):

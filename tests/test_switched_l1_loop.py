@@ -28,7 +28,7 @@ from drake_cert.synthesis.conditions import reference_system_matrix
 from drake_cert.synthesis.switching import common_lyapunov_certificate, switching_families
 from drake_cert.systems.closed_loop import simulator_config
 from drake_cert.systems.plants import LinearLateralPlant
-from drake_cert.systems.switching_controller import SwitchingL1Controller
+from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingOptions
 
 FRAME_S = 0.1  # a switch every camera frame (10 Hz)
 DURATION_S = 8.0
@@ -73,8 +73,9 @@ def switched_run(table, pair, stiffness, speed):
     law = settings.controller.adaptation_law
     b = DiagramBuilder()
     ctrl = b.AddSystem(SwitchingL1Controller(vehicle=vehicle, designs=list(pair),
-                                             settings=settings, law=law,
-                                             initial_speed_mps=speed, curvature_preview=False))
+                                             settings=settings, options=SwitchingOptions(
+                                                 law=law, initial_speed_mps=speed,
+                                                 curvature_preview=False)))
     plant = b.AddSystem(LinearLateralPlant(vehicle))
     limit = vehicle.steering_limit_rad
     sat = b.AddSystem(Saturation([-limit], [limit]))

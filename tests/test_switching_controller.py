@@ -26,7 +26,11 @@ from drake_cert.systems.plants import (
 )
 from drake_cert.systems.road import Road
 from drake_cert.systems.scenario import MotionSettings
-from drake_cert.systems.switching_controller import SwitchingL1Controller, SwitchingL1Law
+from drake_cert.systems.switching_controller import (
+    SwitchingL1Controller,
+    SwitchingL1Law,
+    SwitchingOptions,
+)
 
 CAR = load_vehicle()
 SETTINGS = load_settings()
@@ -98,7 +102,8 @@ def _run_reference_comparison(fast):
                      plant="nonlinear", law="piecewise_constant", t_final_s=t_final,
                      initial_state=s0)
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED, fast=fast, curvature_preview=PREVIEW)
+                                 options=SwitchingOptions(initial_speed_mps=SPEED, fast=fast,
+                                                          curvature_preview=PREVIEW))
     diagram, plant, ctrl, state_log, steer_log = _fixed_speed_loop(ctrl, road, t_final)
     simulator = Simulator(diagram)
     from pydrake.systems.analysis import ApplySimulatorConfig
@@ -126,7 +131,7 @@ def test_constant_design_and_speed_reproduce_the_fixed_parameter_controller(fast
 
 def _controller_context(**kw):
     ctrl = SwitchingL1Law(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED, **kw)
+                          options=SwitchingOptions(initial_speed_mps=SPEED, **kw))
     ctx = ctrl.CreateDefaultContext()
     s = np.array([0.2, -0.3, 0.05, 0.1])
     ctrl.GetInputPort("state").FixValue(ctx, s)
@@ -140,7 +145,7 @@ def _controller_context(**kw):
 
 def test_a_design_switch_acts_at_the_sample_after_the_request():
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED)
+                                 options=SwitchingOptions(initial_speed_mps=SPEED))
     builder = DiagramBuilder()
     builder.AddSystem(ctrl)
     for name in ("state", "curvature_per_m", "speed_mps"):
@@ -187,10 +192,10 @@ def test_the_fast_update_is_the_law_evaluated_directly(preview):
 
 @pytest.mark.parametrize("preview", [False, True])
 def test_the_cpp_steering_output_equals_the_law_output(preview):
-    leaf = SwitchingL1Law(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                          initial_speed_mps=SPEED, curvature_preview=preview)
+    options = SwitchingOptions(initial_speed_mps=SPEED, curvature_preview=preview)
+    leaf = SwitchingL1Law(vehicle=CAR, designs=DESIGNS, settings=SETTINGS, options=options)
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
-                                 initial_speed_mps=SPEED, curvature_preview=preview)
+                                 options=options)
     ctx_l, ctx_c = leaf.CreateDefaultContext(), ctrl.CreateDefaultContext()
     z = np.array([0.25, -0.2, 0.04, 0.12, 0.003, 1, 70, 0, 0])
     inputs = [("state", [0.2, -0.3, 0.05, 0.1]), ("curvature_per_m", [0.02]),
@@ -284,9 +289,9 @@ def build_motion_loop(road, decisions, *, initial_speed, stiffness, mu, fast=Tru
     else:
         source = builder.AddSystem(decisions)
     builder.Connect(source.get_output_port(), motion.GetInputPort("decision"))
-    ctrl = builder.AddSystem(SwitchingL1Controller(vehicle=CAR, designs=DESIGNS,
-                                                   settings=SETTINGS,
-                                                   initial_speed_mps=initial_speed, fast=fast))
+    ctrl = builder.AddSystem(SwitchingL1Controller(
+        vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
+        options=SwitchingOptions(initial_speed_mps=initial_speed, fast=fast)))
     plant = builder.AddSystem(NonlinearLateralPlant(CAR))
     limit = CAR.steering_limit_rad
     sat = builder.AddSystem(Saturation([-limit], [limit]))

@@ -31,6 +31,7 @@ from drake_cert.systems.switching_controller import (
     SwitchingGradientL1Law,
     SwitchingL1Controller,
     SwitchingL1Law,
+    SwitchingOptions,
     gradient_derivatives_fast,
 )
 
@@ -126,8 +127,9 @@ def _read(simulator, logs):
 
 
 def _gradient_controller(designs, speed, **kw):
-    return SwitchingL1Controller(vehicle=CAR, designs=designs, settings=SETTINGS, law="gradient",
-                                 initial_speed_mps=speed, curvature_preview=PREVIEW, **kw)
+    return SwitchingL1Controller(vehicle=CAR, designs=designs, settings=SETTINGS,
+                                 options=SwitchingOptions(law="gradient", initial_speed_mps=speed,
+                                                          curvature_preview=PREVIEW, **kw))
 
 
 def _constant(value):
@@ -138,17 +140,22 @@ def _constant(value):
 
 
 def test_it_has_the_ports_of_the_piecewise_constant_controller(designs):
-    kw = dict(vehicle=CAR, designs=designs, settings=SETTINGS, curvature_preview=True)
-    pc, gradient = SwitchingL1Controller(**kw), SwitchingL1Controller(law="gradient", **kw)
+    kw = dict(vehicle=CAR, designs=designs, settings=SETTINGS)
+
+    def options(law=None):
+        return SwitchingOptions(law=law, curvature_preview=True)
+
+    pc = SwitchingL1Controller(options=options(), **kw)
+    gradient = SwitchingL1Controller(options=options("gradient"), **kw)
     for kind in ("input", "output"):
         def names(system, kind=kind):
             count = getattr(system, f"num_{kind}_ports")()
             return [getattr(system, f"get_{kind}_port")(i).get_name() for i in range(count)]
         assert names(gradient) == names(pc)
     with pytest.raises(ConfigError, match="law 'bogus'"):
-        SwitchingL1Controller(law="bogus", **kw)
+        SwitchingL1Controller(options=options("bogus"), **kw)
     with pytest.raises(ConfigError, match="SwitchingL1Controller"):
-        SwitchingL1Law(law="gradient", **kw)  # the gradient leaf is SwitchingGradientL1Law
+        SwitchingL1Law(options=options("gradient"), **kw)  # the gradient leaf: its own class
 
 
 def test_the_fast_derivative_is_the_law_evaluated_directly(designs):
@@ -168,7 +175,8 @@ def test_the_fast_derivative_is_the_law_evaluated_directly(designs):
                 l1_law.gradient_controller_derivatives(p, x, s, kappa, ahead).astype(float),
                 rtol=1e-9, atol=1e-9)
     leaves = [SwitchingGradientL1Law(vehicle=CAR, designs=designs, settings=SETTINGS,
-                                     initial_speed_mps=12.0, curvature_preview=True, fast=fast)
+                                     options=SwitchingOptions(initial_speed_mps=12.0,
+                                                              curvature_preview=True, fast=fast))
               for fast in (True, False)]
     contexts = [leaf.CreateDefaultContext() for leaf in leaves]
     for leaf, ctx in zip(leaves, contexts, strict=True):  # the leaf: derivative and steering
@@ -207,7 +215,8 @@ def test_with_one_design_at_constant_speed_it_is_the_single_design_gradient_cont
 
 def test_a_design_switch_keeps_the_steering_and_restarts_the_predictor_at_the_plant(designs):
     leaf = SwitchingGradientL1Law(vehicle=CAR, designs=designs, settings=SETTINGS,
-                                  initial_speed_mps=12.0, curvature_preview=True)
+                                  options=SwitchingOptions(initial_speed_mps=12.0,
+                                                           curvature_preview=True))
     grid = leaf.grid_index(0, 12.0)
     old, new = leaf.law_at(0, grid).parameters, leaf.law_at(1, grid).parameters
     s, curvatures = np.array([0.2, -0.1, 0.03, 0.05]), np.array([1 / 60, 1 / 55])
@@ -253,8 +262,9 @@ def test_through_a_design_switch_and_a_4_mps2_speed_ramp_on_a_curve_the_car_stay
     runs = {}
     for law, config in (("piecewise_constant", simulator_config(SETTINGS, "piecewise_constant")),
                         ("gradient", implicit_config())):
-        ctrl = SwitchingL1Controller(vehicle=CAR, designs=designs, settings=SETTINGS, law=law,
-                                     initial_speed_mps=14.0, curvature_preview=PREVIEW)
+        ctrl = SwitchingL1Controller(vehicle=CAR, designs=designs, settings=SETTINGS,
+                                     options=SwitchingOptions(law=law, initial_speed_mps=14.0,
+                                                              curvature_preview=PREVIEW))
         simulator, logs = closed_loop(ctrl, road, speed, request, t_final, config)
         simulator.AdvanceTo(t_final)
         runs[law] = _read(simulator, logs)
