@@ -21,6 +21,7 @@ equations evaluated in Python (the float path of ``drake_cert.systems.l1_law`` /
 Run: ``.venv/bin/python benchmarks/bench_closed_loop.py [--quick]`` (``--quick``: 5 s episodes).
 """
 
+import dataclasses
 import os
 import sys
 import time
@@ -30,7 +31,12 @@ from scipy.integrate import solve_ivp
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.systems import l1_law
-from drake_cert.systems.closed_loop import build_closed_loop, simulate
+from drake_cert.systems.closed_loop import (
+    EpisodeOptions,
+    TrueCondition,
+    build_closed_loop,
+    simulate,
+)
 from drake_cert.systems.plants import (
     body_state_from_error,
     error_state_from_body,
@@ -53,16 +59,16 @@ def default_case():
 
 
 def drake_run(vehicle, settings, design, mu, plant, law, t_final, episode_s=None):
+    condition = TrueCondition(design.stiffness_lo_n_per_rad, mu, design.speed_mps)
     kw = dict(vehicle=vehicle, design=design, settings=settings,
-              stiffness_n_per_rad=design.stiffness_lo_n_per_rad, friction_mu=mu,
-              speed_mps=design.speed_mps, plant=plant, law=law, t_final_s=t_final,
+              episode=EpisodeOptions(plant=plant, law=law, t_final_s=t_final),
               road=Road.episode_curve(radius_m=settings.synthesis.design_radius_m,
                                       length_m=design.speed_mps * (episode_s or t_final)))
     start = time.perf_counter()
-    build_closed_loop(**kw)
+    build_closed_loop(condition=condition, **kw)
     build = time.perf_counter() - start
     start = time.perf_counter()
-    tape = simulate(**kw)
+    tape = simulate(**dataclasses.asdict(condition), **kw)
     total = time.perf_counter() - start
     return tape, build, total - build
 

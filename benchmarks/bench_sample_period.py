@@ -17,7 +17,7 @@ import time
 import numpy as np
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.road import Road
 
 PERIODS = (2e-3, 1e-3, 5e-4, 2.5e-4, 1.25e-4, 6.25e-5)
@@ -46,10 +46,10 @@ def main() -> None:
                     settings.controller, sample_period_s=ts))
                 start = time.perf_counter()
                 tape = simulate(vehicle=vehicle, design=design, settings=s,
-                                stiffness_n_per_rad=stiffness,
-                                friction_mu=design.friction_mu_lo, speed_mps=design.speed_mps,
-                                road=road, plant=plant, law="piecewise_constant",
-                                t_final_s=20.0)
+                                stiffness_n_per_rad=stiffness, friction_mu=design.friction_mu_lo,
+                                speed_mps=design.speed_mps, road=road,
+                                episode=EpisodeOptions(plant=plant, law="piecewise_constant",
+                                                       t_final_s=20.0))
                 wall = time.perf_counter() - start
                 peak = float(np.abs(tape.states[:, 0]).max())
                 change = "" if previous is None else f"{(peak - previous) / peak:+.2%}"

@@ -22,7 +22,7 @@ import numpy as np
 from drake_cert import metrics
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
 from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.road import Road
 
 BISECTIONS = 8
@@ -48,7 +48,8 @@ def stays_in_lane(vehicle, design, settings, stiffness, mu, speed, road) -> tupl
     """(in lane for the whole episode, peak |e1| in m) on the Fiala plant."""
     tape = simulate(vehicle=vehicle, design=design, settings=settings,
                     stiffness_n_per_rad=stiffness, friction_mu=mu, speed_mps=speed, road=road,
-                    plant="nonlinear", t_final_s=road_length_m(road) / speed)
+                    episode=EpisodeOptions(plant="nonlinear",
+                                           t_final_s=road_length_m(road) / speed))
     inside = not tape.stopped_early and not metrics.left_lane(tape)
     return inside, metrics.peak_lateral_offset(tape)
 

@@ -7,7 +7,14 @@ Main entry points: :class:`drake_cert.systems.plants.LinearLateralPlant`,
 :class:`drake_cert.systems.closed_loop.Tape`).
 """
 
-from drake_cert.systems.closed_loop import ClosedLoop, Tape, build_closed_loop, simulate
+from drake_cert.systems.closed_loop import (
+    ClosedLoop,
+    EpisodeOptions,
+    Tape,
+    TrueCondition,
+    build_closed_loop,
+    simulate,
+)
 from drake_cert.systems.l1_controller import L1AdaptiveController
 from drake_cert.systems.plants import (
            ExactDiscreteLinearPlant,
@@ -16,6 +23,6 @@ from drake_cert.systems.plants import (
 )
 from drake_cert.systems.road import Road
 
-__all__ = ["ClosedLoop", "ExactDiscreteLinearPlant", "L1AdaptiveController",
-           "LinearLateralPlant", "NonlinearLateralPlant", "Road", "Tape", "build_closed_loop",
-           "simulate"]
+__all__ = ["ClosedLoop", "EpisodeOptions", "ExactDiscreteLinearPlant", "L1AdaptiveController",
+           "LinearLateralPlant", "NonlinearLateralPlant", "Road", "Tape", "TrueCondition",
+           "build_closed_loop", "simulate"]

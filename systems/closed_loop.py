@@ -77,6 +77,29 @@ class Tape:
         return metrics.time_left_lane(self)
 
 
+@dataclasses.dataclass(frozen=True)
+class TrueCondition:
+    """The true road and speed of one episode (what the plant sees, not what was designed)."""
+
+    stiffness_n_per_rad: float  # true cornering stiffness C per tire (N/rad)
+    friction_mu: float  # true tire-road friction coefficient
+    speed_mps: float  # constant forward speed V (m/s)
+
+
+@dataclasses.dataclass(frozen=True)
+class EpisodeOptions:
+    """How one closed-loop episode is built and run (:func:`build_closed_loop`,
+    :func:`simulate`)."""
+
+    plant: str = "nonlinear"  # "nonlinear", "linear" or "linear_sampled" (PLANTS)
+    law: str | None = None  # adaptation law; None: settings.controller.adaptation_law
+    t_final_s: float = 20.0  # episode length (s)
+    tape_period_s: float = 0.01  # logging period (s)
+    initial_state: object = None  # s(0) = [e1, e1dot, e2, e2dot]; None: zeros (simulate only)
+    config: SimulatorConfig | None = None  # overrides simulator_config (simulate only)
+    reference_controller: bool = False  # the Python reference controller instead of C++
+
+
 @dataclasses.dataclass
 class ClosedLoop:
     """The built diagram and the handles ``simulate`` needs."""
@@ -89,19 +112,23 @@ class ClosedLoop:
 
 
 def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                      stiffness_n_per_rad: float, friction_mu: float, speed_mps: float,
-                      road: Road, plant: str = "nonlinear", law: str | None = None,
-                      t_final_s: float = 20.0, tape_period_s: float = 0.01,
-                      reference_controller: bool = False) -> ClosedLoop:
+                      condition: TrueCondition, road: Road,
+                      episode: EpisodeOptions | None = None) -> ClosedLoop:
     """Wire road source, L1 controller, Saturation, plant and loggers into one Diagram.
 
-    ``plant``: "nonlinear" (Fiala single track), "linear" (eq. 2.45, continuous) or
+    ``condition``: the true stiffness, friction and speed (:class:`TrueCondition`).
+    ``episode`` (:class:`EpisodeOptions`; its initial_state and config are :func:`simulate`'s):
+    ``plant`` "nonlinear" (Fiala single track), "linear" (eq. 2.45, continuous) or
     "linear_sampled" (eq. 2.45 discretised exactly with the steering held over T_s; for the
-    piecewise-constant law only, whose updates happen at the same instants).
+    piecewise-constant law only, whose updates happen at the same instants);
     ``reference_controller`` uses the Python LeafSystem of the same equations
     (:class:`drake_cert.systems.l1_reference.L1AdaptiveControllerReference`) instead of the C++ one.
     """
-    law = law or settings.controller.adaptation_law
+    episode = episode or EpisodeOptions()
+    stiffness_n_per_rad, friction_mu = condition.stiffness_n_per_rad, condition.friction_mu
+    speed_mps, plant = condition.speed_mps, episode.plant
+    t_final_s, tape_period_s = episode.t_final_s, episode.tape_period_s
+    law = episode.law or settings.controller.adaptation_law
     if plant not in PLANTS:
         raise ConfigError(f"unknown plant {plant!r}; expected one of {PLANTS}")
     if plant == "linear_sampled" and law != "piecewise_constant":
@@ -113,7 +140,7 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
         if not (np.isfinite(value) and value > 0):
             raise ConfigError(f"{name} = {value!r} must be a positive finite number")
     builder = DiagramBuilder()
-    controller_class = L1AdaptiveControllerReference if reference_controller else \
+    controller_class = L1AdaptiveControllerReference if episode.reference_controller else \
         L1AdaptiveController
     ctl = settings.controller
     preview = ctl.preview_window_s > 0
@@ -183,13 +210,15 @@ def simulator_config(settings: Settings, law: str) -> SimulatorConfig:
 
 def simulate(*, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
              stiffness_n_per_rad: float, friction_mu: float, speed_mps: float, road: Road,
-             plant: str = "nonlinear", law: str | None = None, t_final_s: float = 20.0,
-             tape_period_s: float = 0.01, initial_state=None,
-             config: SimulatorConfig | None = None, reference_controller: bool = False) -> Tape:
-    """Simulate the closed loop for ``t_final_s`` and return the logged :class:`Tape`.
+             episode: EpisodeOptions | None = None) -> Tape:
+    """Simulate the closed loop for ``episode.t_final_s`` and return the logged :class:`Tape`.
 
-    ``initial_state`` is s(0) = [e1, e1dot, e2, e2dot] (default zeros: on the lane centre);
-    the controller's predictor starts at s(0). ``config`` overrides :func:`simulator_config`.
+    The true condition: ``stiffness_n_per_rad`` (C per tire, N/rad), ``friction_mu``,
+    ``speed_mps`` (V, m/s). ``episode`` (:class:`EpisodeOptions`, default: its defaults):
+    plant, law, t_final_s, tape_period_s (see :func:`build_closed_loop`) and
+    ``initial_state``, s(0) = [e1, e1dot, e2, e2dot] (default zeros: on the lane centre);
+    the controller's predictor starts at s(0). ``episode.config`` overrides
+    :func:`simulator_config`.
     The episode ends early once |e1| > ``OFF_ROAD_M`` (a simulator monitor checks after every
     integration step and returns ``EventStatus.ReachedTermination``): the car has then left
     its lane, and the road frame (Frenet coordinates about a curve of radius R) stops making
@@ -199,26 +228,24 @@ def simulate(*, vehicle: VehicleParams, design: ControllerDesign, settings: Sett
     ``tape.time_left_lane_s`` for such a run. Raises :class:`ConfigError` for an
     ``initial_state`` that is not 4 finite numbers.
     """
-    law = law or settings.controller.adaptation_law
-    s0 = initial_error_state(initial_state)
+    episode = episode or EpisodeOptions()
+    law = episode.law or settings.controller.adaptation_law
+    episode = dataclasses.replace(episode, law=law)
+    condition = TrueCondition(stiffness_n_per_rad, friction_mu, speed_mps)
+    s0 = initial_error_state(episode.initial_state)
     loop = build_closed_loop(vehicle=vehicle, design=design, settings=settings,
-                             stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
-                             speed_mps=speed_mps, road=road, plant=plant, law=law,
-                             t_final_s=t_final_s, tape_period_s=tape_period_s,
-                             reference_controller=reference_controller)
+                             condition=condition, road=road, episode=episode)
     simulator = Simulator(loop.diagram)
-    ApplySimulatorConfig(config or simulator_config(settings, law), simulator)
+    ApplySimulatorConfig(episode.config or simulator_config(settings, law), simulator)
     context = simulator.get_mutable_context()
     kappa0 = float(road.curvature_at(0.0))
     set_plant_state(loop, context, s0, speed_mps, kappa0)
     loop.controller.set_initial_state(context, s0, kappa0)
     simulator.set_monitor(off_road_monitor(loop))
     simulator.Initialize()
-    status = simulator.AdvanceTo(t_final_s)
+    status = simulator.AdvanceTo(episode.t_final_s)
     stopped = status.reason() == SimulatorStatus.ReturnReason.kReachedTerminationCondition
-    tape = tape_from_loggers(loop, context, vehicle=vehicle, speed_mps=speed_mps,
-                             stiffness_n_per_rad=stiffness_n_per_rad, friction_mu=friction_mu,
-                             law=law)
+    tape = tape_from_loggers(loop, context, vehicle=vehicle, condition=condition, law=law)
     tape.simulated_s = float(context.get_time())
     tape.stopped_early = bool(stopped)
     return tape
@@ -266,9 +293,11 @@ def set_plant_state(loop: ClosedLoop, context, s0, speed_mps: float, curvature: 
             np.asarray(body_state_from_error(s0, speed_mps, curvature), float))
 
 
-def tape_from_loggers(loop: ClosedLoop, context, *, vehicle: VehicleParams, speed_mps: float,
-                      stiffness_n_per_rad: float, friction_mu: float, law: str) -> Tape:
+def tape_from_loggers(loop: ClosedLoop, context, *, vehicle: VehicleParams,
+                      condition: TrueCondition, law: str) -> Tape:
     """Collect the three logs into a :class:`Tape` (samples aligned by construction)."""
+    speed_mps, friction_mu = condition.speed_mps, condition.friction_mu
+    stiffness_n_per_rad = condition.stiffness_n_per_rad
     logs = {k: v.FindLog(context) for k, v in loop.loggers.items()}
     n = min(log.num_samples() for log in logs.values())
     return Tape(

@@ -37,7 +37,7 @@ from drake_cert.perception.models import (
 )
 from drake_cert.synthesis.design_io import DesignTable, save_design_table
 from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.road import Road
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -162,9 +162,9 @@ def test_simulate_api_rejects_an_initial_state_of_the_wrong_shape():
     road = Road.straight()
     for bad in ([0.0, 0.0, 0.0], np.zeros((2, 2)), [0.0, math.nan, 0.0, 0.0], "abcd"):
         with pytest.raises(ConfigError, match="initial_state"):
-            simulate(vehicle=VEHICLE, design=DESIGN, settings=SETTINGS,
-                     stiffness_n_per_rad=45e3, friction_mu=0.5, speed_mps=12.0, road=road,
-                     t_final_s=0.1, initial_state=bad)
+            simulate(vehicle=VEHICLE, design=DESIGN, settings=SETTINGS, stiffness_n_per_rad=45e3,
+                     friction_mu=0.5, speed_mps=12.0, road=road,
+                     episode=EpisodeOptions(t_final_s=0.1, initial_state=bad))
 
 
 # --------------------------------------------------------------------------- synthesis inputs

@@ -20,6 +20,8 @@ from drake_cert.config import load_settings, load_vehicle
 from drake_cert.synthesis.uncertainty import matched_disturbance
 from drake_cert.systems import l1_law
 from drake_cert.systems.closed_loop import (
+    EpisodeOptions,
+    TrueCondition,
     build_closed_loop,
     set_plant_state,
     simulate,
@@ -56,8 +58,8 @@ def _step_episode(design, friction_mu, settings=SETTINGS):
     v = design.speed_mps
     road = Road.curvature_step(radius_m=SETTINGS.synthesis.design_radius_m, straight_m=2.0 * v)
     tape = simulate(vehicle=CAR, design=design, settings=settings,
-                    stiffness_n_per_rad=design.interval[0], friction_mu=friction_mu,
-                    speed_mps=v, road=road, t_final_s=8.0, tape_period_s=0.002)
+                    stiffness_n_per_rad=design.interval[0], friction_mu=friction_mu, speed_mps=v,
+                    road=road, episode=EpisodeOptions(t_final_s=8.0, tape_period_s=0.002))
     u = np.abs(tape.steering_rad)
     steady = float(np.mean(u[tape.times_s > 7.0]))
     peak = float(np.max(u[tape.times_s > 1.9]))
@@ -116,9 +118,8 @@ def test_gradient_law_runs_a_20_s_step_in_few_integrator_steps(default_design_ta
     v = sunny.speed_mps
     road = Road.curvature_step(radius_m=SETTINGS.synthesis.design_radius_m, straight_m=2.0 * v)
     loop = build_closed_loop(vehicle=CAR, design=sunny, settings=SETTINGS,
-                             stiffness_n_per_rad=sunny.interval[0],
-                             friction_mu=sunny.friction_mu_lo, speed_mps=v, road=road,
-                             law="gradient", t_final_s=20.0)
+                             condition=TrueCondition(sunny.interval[0], sunny.friction_mu_lo, v),
+                             road=road, episode=EpisodeOptions(law="gradient", t_final_s=20.0))
     simulator = Simulator(loop.diagram)
     ApplySimulatorConfig(simulator_config(SETTINGS, "gradient"), simulator)
     context = simulator.get_mutable_context()

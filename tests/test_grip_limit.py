@@ -5,7 +5,7 @@ import numpy as np
 from drake_cert import metrics
 from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load_vehicle
 from drake_cert.synthesis.table import synthesize_design
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.road import Road
 
 CAR, SETTINGS = load_vehicle(), load_settings()
@@ -13,8 +13,9 @@ CAR, SETTINGS = load_vehicle(), load_settings()
 
 def _in_lane(design, stiffness, mu, speed, road):
     tape = simulate(vehicle=CAR, design=design, settings=SETTINGS, stiffness_n_per_rad=stiffness,
-                    friction_mu=mu, speed_mps=speed, road=road, plant="nonlinear",
-                    t_final_s=(road.knots_m[-1] + 100.0) / speed)
+                    friction_mu=mu, speed_mps=speed, road=road,
+                    episode=EpisodeOptions(plant="nonlinear",
+                                           t_final_s=(road.knots_m[-1] + 100.0) / speed))
     return not tape.stopped_early and not metrics.left_lane(tape)
 
 

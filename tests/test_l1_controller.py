@@ -10,7 +10,7 @@ from pydrake.systems.analysis import SimulatorConfig
 from drake_cert import metrics
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.systems import l1_law
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.l1_controller import L1AdaptiveController
 from drake_cert.systems.road import Road
 
@@ -74,16 +74,17 @@ def test_piecewise_constant_system_evaluates_the_reference_update():
 def test_cpp_controller_matches_the_python_reference_leaf_system(law):
     road = Road.curve(radius_m=50.0, straight_m=5.0, transition_m=10.0, curve_m=30.0)
     kw = dict(vehicle=CAR, design=DESIGN, settings=SETTINGS, stiffness_n_per_rad=42_000.0,
-              friction_mu=0.6, speed_mps=SPEED, road=road, plant="nonlinear", law=law,
-              t_final_s=3.0, initial_state=[0.2, 0.0, 0.01, 0.0])
+              friction_mu=0.6, speed_mps=SPEED, road=road)
+    episode = EpisodeOptions(plant="nonlinear", law=law, t_final_s=3.0,
+                             initial_state=[0.2, 0.0, 0.01, 0.0])
     tolerance = 1e-11  # piecewise-constant: the same fixed steps, only roundoff differs
     if law == "gradient":  # error-controlled steps: agreement to the integration accuracy
-        kw["config"] = SimulatorConfig(integration_scheme="runge_kutta3", accuracy=1e-8,
-                                       use_error_control=True, publish_every_time_step=False)
-        kw["t_final_s"] = 1.5
+        config = SimulatorConfig(integration_scheme="runge_kutta3", accuracy=1e-8,
+                                 use_error_control=True, publish_every_time_step=False)
+        episode = dataclasses.replace(episode, config=config, t_final_s=1.5)
         tolerance = 1e-6
-    fast = simulate(**kw)
-    reference = simulate(reference_controller=True, **kw)
+    fast = simulate(episode=episode, **kw)
+    reference = simulate(episode=dataclasses.replace(episode, reference_controller=True), **kw)
     assert metrics.peak_lateral_offset(fast) > 0.05
     np.testing.assert_allclose(fast.states, reference.states, rtol=0, atol=tolerance)
     np.testing.assert_allclose(fast.steering_rad, reference.steering_rad, rtol=0, atol=tolerance)
@@ -121,8 +122,9 @@ def test_adaptive_loop_removes_the_offset_left_by_a_wrong_stiffness():
     road = Road((0.0,), (1 / 50,))
     start = dataclasses.replace(DESIGN)
     tape = simulate(vehicle=CAR, design=start, settings=SETTINGS, stiffness_n_per_rad=40_000.0,
-                    friction_mu=0.9, speed_mps=SPEED, road=road, plant="linear_sampled",
-                    law="piecewise_constant", t_final_s=8.0)
+                    friction_mu=0.9, speed_mps=SPEED, road=road,
+                    episode=EpisodeOptions(plant="linear_sampled", law="piecewise_constant",
+                                           t_final_s=8.0))
     assert abs(metrics.final_offset(tape)) < 0.01
     assert not metrics.left_lane(tape)
 
@@ -130,10 +132,11 @@ def test_adaptive_loop_removes_the_offset_left_by_a_wrong_stiffness():
 def test_sampled_and_continuous_linear_plants_agree():
     road = Road.curve(radius_m=50.0, straight_m=10.0, curve_m=30.0)
     kw = dict(vehicle=CAR, design=DESIGN, settings=SETTINGS, stiffness_n_per_rad=45_000.0,
-              friction_mu=0.9, speed_mps=SPEED, road=road, law="piecewise_constant",
-              t_final_s=6.0)
-    sampled = simulate(plant="linear_sampled", **kw)
-    continuous = simulate(plant="linear", **kw)
+              friction_mu=0.9, speed_mps=SPEED, road=road)
+    sampled = simulate(episode=EpisodeOptions(plant="linear_sampled", law="piecewise_constant",
+                                              t_final_s=6.0), **kw)
+    continuous = simulate(episode=EpisodeOptions(plant="linear", law="piecewise_constant",
+                                                 t_final_s=6.0), **kw)
     peak = metrics.peak_lateral_offset(continuous)
     assert peak > 1e-3
     np.testing.assert_allclose(sampled.states[:, 0], continuous.states[:, 0], atol=0.02 * peak)
@@ -149,8 +152,8 @@ def test_default_sample_period_is_converged():
                                   sample_period_s=SETTINGS.controller.sample_period_s * factor)
         tape = simulate(vehicle=CAR, design=DESIGN,
                         settings=dataclasses.replace(SETTINGS, controller=ctl),
-                        stiffness_n_per_rad=40_000.0, friction_mu=0.9, speed_mps=SPEED,
-                        road=road, plant="linear_sampled", t_final_s=8.0)
+                        stiffness_n_per_rad=40_000.0, friction_mu=0.9, speed_mps=SPEED, road=road,
+                        episode=EpisodeOptions(plant="linear_sampled", t_final_s=8.0))
         peaks.append(metrics.peak_lateral_offset(tape))
     assert abs(peaks[0] - peaks[1]) < 0.01 * peaks[1]
 
@@ -159,8 +162,8 @@ def test_both_laws_keep_the_linear_car_in_its_lane_on_a_curve():
     road = Road.curve(radius_m=50.0, straight_m=10.0, curve_m=30.0)
     for law in l1_law.LAWS:
         tape = simulate(vehicle=CAR, design=DESIGN, settings=SETTINGS,
-                        stiffness_n_per_rad=58_000.0, friction_mu=0.9, speed_mps=SPEED,
-                        road=road, plant="linear", law=law, t_final_s=6.0)
+                        stiffness_n_per_rad=58_000.0, friction_mu=0.9, speed_mps=SPEED, road=road,
+                        episode=EpisodeOptions(plant="linear", law=law, t_final_s=6.0))
         assert not metrics.left_lane(tape), law
         assert metrics.peak_lateral_offset(tape) < 0.1, law
 
@@ -176,8 +179,9 @@ def test_car_stays_in_lane_on_the_nonlinear_plant_at_the_design_speed(default_de
         for stiffness in d.interval:
             tape = simulate(vehicle=CAR, design=d, settings=SETTINGS,
                             stiffness_n_per_rad=stiffness, friction_mu=d.friction_mu_lo,
-                            speed_mps=d.speed_mps, road=road, plant="nonlinear",
-                            t_final_s=110.0 / d.speed_mps)
+                            speed_mps=d.speed_mps, road=road,
+                            episode=EpisodeOptions(plant="nonlinear",
+                                                   t_final_s=110.0 / d.speed_mps))
             assert not metrics.left_lane(tape), (d.labels, stiffness,
                                                  metrics.peak_lateral_offset(tape))
 
@@ -190,7 +194,8 @@ def test_car_leaves_the_lane_far_above_the_grip_limit(heavy_rain_design):
     road = Road.curve(radius_m=radius, straight_m=20.0, curve_m=60.0)
     tape = simulate(vehicle=CAR, design=d, settings=SETTINGS,
                     stiffness_n_per_rad=d.stiffness_lo_n_per_rad, friction_mu=d.friction_mu_lo,
-                    speed_mps=speed, road=road, plant="nonlinear", t_final_s=110.0 / speed)
+                    speed_mps=speed, road=road,
+                    episode=EpisodeOptions(plant="nonlinear", t_final_s=110.0 / speed))
     assert metrics.left_lane(tape)
     assert metrics.peak_lateral_offset(tape) > CAR.lane_margin_m
 
@@ -209,10 +214,11 @@ def test_gradient_law_settles_at_the_synthesis_steady_state(heavy_rain_design, e
     expected = adaptive_steady_state(CAR, d.k_m_array, d.nominal_stiffness_n_per_rad, stiffness,
                                      d.speed_mps, kappa, SETTINGS.controller.q_ad_diag)
     kw = dict(vehicle=CAR, design=d, settings=SETTINGS, stiffness_n_per_rad=stiffness,
-              friction_mu=0.9, speed_mps=d.speed_mps, road=Road((0.0,), (kappa,)),
-              plant="linear", t_final_s=40.0)
-    gradient = simulate(law="gradient", **kw)
+              friction_mu=0.9, speed_mps=d.speed_mps, road=Road((0.0,), (kappa,)))
+    gradient = simulate(episode=EpisodeOptions(plant="linear", law="gradient", t_final_s=40.0),
+                        **kw)
     assert abs(expected.lateral_offset_m) > 0.01
     assert metrics.final_offset(gradient) == pytest.approx(expected.lateral_offset_m, rel=0.02)
-    piecewise = simulate(law="piecewise_constant", **kw)
+    piecewise = simulate(episode=EpisodeOptions(plant="linear", law="piecewise_constant",
+                                                t_final_s=40.0), **kw)
     assert abs(metrics.final_offset(piecewise)) < 0.05 * abs(expected.lateral_offset_m)

@@ -17,7 +17,7 @@ from pydrake.systems.primitives import (
 
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.longitudinal import LongitudinalMotion
 from drake_cert.systems.plants import (
     LinearLateralPlant,
@@ -99,8 +99,8 @@ def _run_reference_comparison(fast):
     t_final = 3.0
     fixed = simulate(vehicle=CAR, design=DESIGNS[0], settings=SETTINGS,
                      stiffness_n_per_rad=42_000.0, friction_mu=0.6, speed_mps=SPEED, road=road,
-                     plant="nonlinear", law="piecewise_constant", t_final_s=t_final,
-                     initial_state=s0)
+                     episode=EpisodeOptions(plant="nonlinear", law="piecewise_constant",
+                                            t_final_s=t_final, initial_state=s0))
     ctrl = SwitchingL1Controller(vehicle=CAR, designs=DESIGNS, settings=SETTINGS,
                                  options=SwitchingOptions(initial_speed_mps=SPEED, fast=fast,
                                                           curvature_preview=PREVIEW))

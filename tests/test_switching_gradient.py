@@ -23,7 +23,7 @@ from pydrake.trajectories import PiecewisePolynomial
 from drake_cert.config import load_settings, load_vehicle
 from drake_cert.errors import ConfigError
 from drake_cert.systems import l1_law
-from drake_cert.systems.closed_loop import simulate, simulator_config
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate, simulator_config
 from drake_cert.systems.plants import NonlinearLateralPlant, body_state_from_error
 from drake_cert.systems.road import Road
 from drake_cert.systems.switching_controller import (
@@ -197,10 +197,11 @@ def test_with_one_design_at_constant_speed_it_is_the_single_design_gradient_cont
     design, speed, t_final = designs[0], 14.0, 2.0  # 14.0 m/s: a point of the speed grid
     road = Road.curve(radius_m=50.0, straight_m=5.0, transition_m=10.0, curve_m=40.0)
     s0 = np.array([0.2, 0.0, 0.01, 0.0])
-    fixed = simulate(vehicle=CAR, design=design, settings=SETTINGS,
-                     stiffness_n_per_rad=STIFFNESS, friction_mu=MU, speed_mps=speed,
-                     road=road, plant="nonlinear", law="gradient", t_final_s=t_final,
-                     initial_state=s0, tape_period_s=0.01, config=implicit_config())
+    fixed = simulate(vehicle=CAR, design=design, settings=SETTINGS, stiffness_n_per_rad=STIFFNESS,
+                     friction_mu=MU, speed_mps=speed, road=road,
+                     episode=EpisodeOptions(plant="nonlinear", law="gradient", t_final_s=t_final,
+                                            initial_state=s0, tape_period_s=0.01,
+                                            config=implicit_config()))
     simulator, logs = closed_loop(_gradient_controller([design], speed), road, speed,
                                   _constant(0.0), t_final, implicit_config(), s0=s0)
     simulator.AdvanceTo(t_final)

@@ -159,7 +159,7 @@ def check_speed(speed: float, synthesis_settings) -> None:
 def run(args) -> int:
     from drake_cert.cli.progress import progress_bar
     from drake_cert.synthesis.design_io import load_design_file
-    from drake_cert.systems.closed_loop import simulate
+    from drake_cert.systems.closed_loop import EpisodeOptions, simulate
     from drake_cert.systems.road import Road
 
     table = load_design_file(args.designs)  # cli.main has run check(args)
@@ -177,9 +177,9 @@ def run(args) -> int:
         road = Road.for_episode(args.road, radius_m=radius, length_m=speed * args.duration)
         start = time.perf_counter()
         tape = simulate(vehicle=vehicle, design=design, settings=settings,
-                        stiffness_n_per_rad=stiffness, friction_mu=mu, speed_mps=speed,
-                        road=road, plant=args.plant, law=law, t_final_s=args.duration,
-                        initial_state=[args.initial_offset, 0.0, 0.0, 0.0])
+                        stiffness_n_per_rad=stiffness, friction_mu=mu, speed_mps=speed, road=road,
+                        episode=EpisodeOptions(plant=args.plant, law=law, t_final_s=args.duration,
+                                               initial_state=[args.initial_offset, 0.0, 0.0, 0.0]))
         wall = time.perf_counter() - start
         tapes.append((design, tape))
         results.append(case_record(index, design, tape, wall, road=args.road, radius_m=radius,

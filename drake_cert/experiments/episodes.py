@@ -14,7 +14,7 @@ import dataclasses
 from drake_cert import metrics
 from drake_cert.config import Settings, VehicleParams
 from drake_cert.synthesis.design import ControllerDesign
-from drake_cert.systems.closed_loop import simulate
+from drake_cert.systems.closed_loop import EpisodeOptions, simulate
 from drake_cert.systems.road import Road
 
 EPISODE_S = 20.0  # simulated seconds per episode
@@ -58,4 +58,5 @@ class EpisodeRunner:
         return simulate(vehicle=self.vehicle, design=design, settings=self.settings,
                         stiffness_n_per_rad=float(stiffness_n_per_rad),
                         friction_mu=float(friction_mu), speed_mps=speed, road=road,
-                        plant="nonlinear", t_final_s=self.duration_s, tape_period_s=0.05)
+                        episode=EpisodeOptions(plant="nonlinear", t_final_s=self.duration_s,
+                                               tape_period_s=0.05))
