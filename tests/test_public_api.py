@@ -24,6 +24,19 @@ def test_the_readme_example_runs_and_reports_a_car_in_its_lane():
     assert "left the lane: False" in out.stdout
 
 
+def test_the_usage_example_builds_and_drives_the_certified_diagram():
+    text = (ROOT / "docs/usage.md").read_text()
+    marker = text.index("<!-- api-example: the certified Diagram")
+    code = re.search(r"```python\n(.*?)```", text[marker:], re.S).group(1)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         cwd=ROOT, timeout=600)
+    assert out.returncode == 0, out.stderr
+    assert "'perception'" in out.stdout and "'controller'" in out.stdout
+    assert "unprotected 0.00 s" in out.stdout
+    bound = float(re.search(r"guarantee_failure_bound ([0-9.]+)", out.stdout).group(1))
+    assert 0.0 < bound <= 0.01
+
+
 def test_importing_the_facade_imports_neither_torch_nor_pydrake():
     code = "import sys, drake_cert; print('torch' in sys.modules, 'pydrake' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True)
