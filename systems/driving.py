@@ -141,6 +141,36 @@ class DrivingDiagram:
     guarantee: dict = dataclasses.field(default_factory=dict)  # guarantee_summary()
 
 
+@dataclasses.dataclass(frozen=True)
+class BuildOptions:
+    """How :func:`build_certified_driving_diagram` logs and reports its set-up."""
+
+    tape_period_s: float = 0.05  # period of the continuous logs (s)
+    calibration_progress: Callable | None = None  # wraps the calibration frames (a bar)
+
+
+@dataclasses.dataclass(frozen=True)
+class DriveProgress:
+    """Progress callbacks of :func:`drive_scenario`."""
+
+    drive: Callable[[float], None] | None = None  # called with the simulated seconds advanced
+    calibration: Callable | None = None  # wraps the iterable of calibration frames (a bar)
+
+
+@dataclasses.dataclass(frozen=True)
+class DriveRun:
+    """How one drive ran and what its Diagram was built with, for :func:`summarize_drive`."""
+
+    simulated_s: float  # simulated time at the end (s)
+    wall_s: float  # wall-clock time of the simulation (s)
+    ending: str  # "time limit", "route end", "off road" or "stopped"
+    seed_source: str = "scenario"  # "scenario" or "os-entropy"
+    envelope_index: int | None = None  # index of the envelope design
+    lead_in_m: float = 0.0  # driven before the route under the envelope design (m)
+    alpha_spending: AlphaSpending | None = None  # the perception's alpha spending, if any
+    guarantee: dict | None = None  # guarantee_summary(), merged into the summary
+
+
 def entropy_seed() -> int:
     """A fresh 63-bit seed from the operating system's entropy (a deployment's noise: an
     attacker who knows the seed knows the certificate's noise and can defeat it)."""
@@ -560,9 +590,7 @@ class _DriveParts:
 def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParams,
                                     settings: Settings, conditions: ConditionsTable,
                                     designs: list[ControllerDesign],
-                                    tape_period_s: float = 0.05,
-                                    calibration_progress: Callable | None = None
-                                    ) -> DrivingDiagram:
+                                    options: BuildOptions | None = None) -> DrivingDiagram:
     """Wire route, camera, attacker, perception, certified interval, longitudinal motion,
     switching L1 controller, Saturation and the Fiala plant into one Diagram, with logs.
 
@@ -570,14 +598,17 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     preset must be in it). The certified pipeline runs the smoothed model at
     ``perception.sigma``; the base pipeline runs the model at ``perception.base_sigma``
     (0: the plain f) and is attacked by PGD on that model. Ports and timing: DESIGN 6.1.
+    ``options`` (:class:`BuildOptions`): the tape period (s, default 0.05) and a wrapper of
+    the calibration frames (a progress bar).
     """
+    options = options or BuildOptions()
     parts = _prepare_drive(scenario, vehicle, settings, conditions, designs,
-                           calibration_progress)
+                           options.calibration_progress)
     b = DiagramBuilder()
     # added in the order motion, perception, control: the order their events were always in
     systems_ = {**_add_motion(b, parts), **_add_perception(b, parts), **_add_control(b, parts)}
     _connect(b, systems_, preview=settings.controller.preview_window_s > 0)
-    loggers, tick_loggers = _add_loggers(b, systems_, tape_period_s, parts.period_s)
+    loggers, tick_loggers = _add_loggers(b, systems_, options.tape_period_s, parts.period_s)
     diagram = b.Build()
     diagram.set_name(f"certified_driving_{parts.scenario.perception.pipeline}")
     switching = preset_switching_certificate(vehicle, parts.table, settings,
@@ -863,13 +894,13 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
             break
     wall = time.perf_counter() - start
     tape, ticks = _tapes(built, context)
-    summary = summarize_drive(tape, ticks, scenario=scenario, route=route,
-                              simulated_s=context.get_time(), wall_s=wall,
-                              ending=ending["reason"], seed_source=built.seed_source,
-                              envelope_index=built.systems["interval"].envelope_index,
-                              lead_in_m=built.lead_in_m,
-                              alpha_spending=built.systems["perception"].alpha_spending,
-                              guarantee=built.guarantee)
+    run = DriveRun(simulated_s=context.get_time(), wall_s=wall, ending=ending["reason"],
+                   seed_source=built.seed_source,
+                   envelope_index=built.systems["interval"].envelope_index,
+                   lead_in_m=built.lead_in_m,
+                   alpha_spending=built.systems["perception"].alpha_spending,
+                   guarantee=built.guarantee)
+    summary = summarize_drive(tape, ticks, scenario=scenario, route=route, run=run)
     if built.switching is not None:
         from drake_cert.synthesis.switching import drive_switching_report
 
@@ -882,17 +913,18 @@ def drive(built: DrivingDiagram, *, progress: Callable[[float], None] | None = N
 
 def drive_scenario(scenario: Scenario, *, vehicle: VehicleParams, settings: Settings,
                    conditions: ConditionsTable, designs: list[ControllerDesign],
-                   progress: Callable[[float], None] | None = None,
-                   calibration_progress: Callable | None = None) -> DriveResult:
+                   progress: DriveProgress | None = None) -> DriveResult:
     """Build the Diagram for ``scenario`` and drive it (one call; usable in a worker process);
-    ``calibration_progress`` wraps the iterable of calibration frames (a progress bar)."""
+    ``progress`` (:class:`DriveProgress`): ``drive`` is called with the simulated seconds
+    advanced, ``calibration`` wraps the iterable of calibration frames (a progress bar)."""
     from drake_cert.threads import torch_threads
 
+    progress = progress or DriveProgress()
     with torch_threads(1):
-        built = build_certified_driving_diagram(scenario, vehicle=vehicle, settings=settings,
-                                                conditions=conditions, designs=designs,
-                                                calibration_progress=calibration_progress)
-        return drive(built, progress=progress)
+        built = build_certified_driving_diagram(
+            scenario, vehicle=vehicle, settings=settings, conditions=conditions,
+            designs=designs, options=BuildOptions(calibration_progress=progress.calibration))
+        return drive(built, progress=progress.drive)
 
 
 def _in_force(designs: list[ControllerDesign], index: np.ndarray) -> dict:
@@ -969,11 +1001,9 @@ def time_left_lane(tape: DriveTape) -> float | None:
 
 
 def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, route: Route,
-                    simulated_s: float, wall_s: float, ending: str,
-                    seed_source: str = "scenario", envelope_index: int | None = None,
-                    lead_in_m: float = 0.0, alpha_spending: AlphaSpending | None = None,
-                    guarantee: dict | None = None) -> dict:
-    """The ``drive --json`` object (DESIGN 7 metrics of one drive).
+                    run: DriveRun) -> dict:
+    """The ``drive --json`` object (DESIGN 7 metrics of one drive); ``run``
+    (:class:`DriveRun`): how the drive ran and what its Diagram was built with.
 
     ``mean_speed_mps`` is over the route (arc length >= 0, from the first point a frame
     showed); the lead-in before it (``lead_in_m``, driven under the envelope design before any
@@ -993,6 +1023,9 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
     ``guarantee``: :func:`guarantee_summary` (``interval``, ``standing_assumption``,
     ``guarantee_failure_bound`` and what it is computed from), merged in.
     """
+    simulated_s, wall_s, ending = run.simulated_s, run.wall_s, run.ending
+    seed_source, envelope_index, lead_in_m = run.seed_source, run.envelope_index, run.lead_in_m
+    alpha_spending, guarantee = run.alpha_spending, run.guarantee
     left = time_left_lane(tape)
     covers = (ticks.interval_n_per_rad[:, 0] <= ticks.seen_stiffness_n_per_rad) & \
         (ticks.seen_stiffness_n_per_rad <= ticks.interval_n_per_rad[:, 1])

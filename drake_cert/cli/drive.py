@@ -158,7 +158,7 @@ def run(args) -> int:
     choices = [dict(scenario=args.scenario, n=args.n, pipeline=p, attack=args.attack,
                     eps=args.eps, seed=None if args.seed == "none" else args.seed,
                     duration=args.duration, interval=args.interval) for p in pipelines]
-    first = _scenario_for(**choices[0])
+    first = _scenario_for(choices[0])
     if args.eps is not None and first.attack.kind not in ("sa", "ea"):
         from drake_cert.errors import ConfigError
 
@@ -184,7 +184,7 @@ def run(args) -> int:
     check_look_ahead(first, table)
     check_initial_speed(first, table)
     for choice in choices:
-        check_perception_budget(_scenario_for(**choice), common["conditions"], table)
+        check_perception_budget(_scenario_for(choice), common["conditions"], table)
     if len(choices) == 1:
         results = [_drive_with_bar(choices[0], common, position=0)]
     else:  # one process per pipeline: the drives are independent, the machine has 2+ cores
@@ -207,14 +207,19 @@ def run(args) -> int:
     return 0
 
 
-def _scenario_for(*, scenario, n, pipeline, attack, eps, seed, duration=None, interval=None):
-    """The scenario (shipped name or file) with the command line's choices applied."""
+def _scenario_for(choices: dict):
+    """The scenario (shipped name or file) with the command line's choices applied: a dict
+    of ``scenario``, ``n``, ``pipeline``, ``attack``, ``eps``, ``seed`` and optionally
+    ``duration`` and ``interval`` (None: the scenario's own)."""
     import dataclasses
 
     from drake_cert.systems.driving import with_overrides
     from drake_cert.systems.scenario import load_scenario
 
-    loaded = load_scenario(scenario)
+    n, duration, interval = choices["n"], choices.get("duration"), choices.get("interval")
+    pipeline, attack, eps, seed = (choices["pipeline"], choices["attack"], choices["eps"],
+                                   choices["seed"])
+    loaded = load_scenario(choices["scenario"])
     if n is not None:
         loaded = dataclasses.replace(loaded, perception=dataclasses.replace(loaded.perception,
                                                                             n=n))
@@ -230,10 +235,10 @@ def _drive_with_bar(choices: dict, common: dict, position: int):
     """Drive one scenario with a progress bar in simulated seconds (runs in a worker too)."""
     from drake_cert.certification.sampler import retain_freed_memory
     from drake_cert.cli.progress import progress_bar
-    from drake_cert.systems.driving import drive_scenario
+    from drake_cert.systems.driving import DriveProgress, drive_scenario
 
     retain_freed_memory()  # a --compare worker process runs this, not cli.main
-    scenario = _scenario_for(**choices)
+    scenario = _scenario_for(choices)
 
     def calibration_bar(frames):
         return progress_bar(frames, unit="frame", position=position, leave=False,
@@ -243,8 +248,9 @@ def _drive_with_bar(choices: dict, common: dict, position: int):
     with progress_bar(total=round(horizon, 1), unit="sim s", position=position,
                       desc=f"{scenario.name} {scenario.perception.pipeline}",
                       bar_format="{l_bar}{bar}| {n:.1f} sim s [{elapsed}]") as bar:
-        return drive_scenario(scenario, progress=bar.update,
-                              calibration_progress=calibration_bar, **common)
+        return drive_scenario(scenario, progress=DriveProgress(drive=bar.update,
+                                                               calibration=calibration_bar),
+                              **common)
 
 
 def format_summaries(summaries: list[dict]) -> str:
