@@ -130,20 +130,15 @@ class SpeedProfile:
         return SpeedProfile(tuple(kept), float(time_s), max(q, look))
 
     def with_combined_decision(self, look_m: float, design_index: int, time_s: float,
-                               arc_length_m: float, *, window_m: float, tolerance: int,
-                               looks_per_side: int = LOOKS_PER_SIDE,
-                               spans: Sequence[tuple[int, int]],
-                               design_of_span: dict[tuple[int, int], int],
-                               command_of: Callable[[int], float],
-                               envelope_index: int) -> "SpeedProfile":
+                               arc_length_m: float, *, rule: "CombinationRule"
+                               ) -> "SpeedProfile":
         """The profile after one decision, combined with the decisions around it by the rule
-        of :mod:`drake_cert.systems.decision_combination` (module docstring, "Decisions combined").
-
-        ``spans[d]``: the label span of design d in friction order; ``design_of_span``: its
-        inverse; ``tolerance``: the wrong decisions among the frames around a point that the
-        rule tolerates; ``command_of(design)``: its speed command (m/s, 0 = stop).
+        of :mod:`drake_cert.systems.decision_combination` (module docstring, "Decisions combined")
+        with the designs and window of ``rule`` (:class:`CombinationRule`).
         """
-        r, full = float(look_m), spans[int(envelope_index)]
+        window_m, tolerance, looks_per_side = rule.window_m, rule.tolerance, rule.looks_per_side
+        spans, design_of_span, command_of = rule.spans, rule.design_of_span, rule.command_of
+        r, full = float(look_m), spans[int(rule.envelope_index)]
         looks = (*self.looks, (r, int(design_index)))
         looks = _recent_looks(looks, r - 2.0 * window_m)
         positions = sorted({lk[0] for lk in looks})
@@ -166,6 +161,24 @@ class SpeedProfile:
         passed = [i for i, e in enumerate(kept) if e[0] <= arc_length_m]
         kept = kept[passed[-1]:] if passed else kept  # drop passed entries but the one in force
         return SpeedProfile(tuple(kept), float(time_s), max(self.last_look_m, r), looks=looks)
+
+
+@dataclasses.dataclass(frozen=True)
+class CombinationRule:
+    """How :meth:`SpeedProfile.with_combined_decision` combines decisions (docs/design.md 6.3).
+
+    ``spans[d]``: the label span of design d in friction order; ``design_of_span``: its
+    inverse; ``tolerance``: the wrong decisions among the frames around a point that the rule
+    tolerates; ``command_of(design)``: its speed command (m/s, 0 = stop).
+    """
+
+    spans: Sequence[tuple[int, int]]
+    design_of_span: dict[tuple[int, int], int]
+    command_of: Callable[[int], float]
+    envelope_index: int  # the envelope design (its span is every label)
+    window_m: float  # the road around a look point whose frames are combined (m)
+    tolerance: int  # wrong looks tolerated on each side of a stretch
+    looks_per_side: int = LOOKS_PER_SIDE  # looks counted on each side of a stretch
 
 
 def _recent_looks(looks: tuple[tuple[float, int], ...],
@@ -296,11 +309,7 @@ class SpeedPlanner(LeafSystem):
             requested = int(getattr(decision, "requested_design_index", -1))
             new = profile.with_combined_decision(
                 look, requested if requested >= 0 else int(decision.design_index),
-                float(decision.time_s), x,
-                window_m=m.window_m, tolerance=m.tolerance, looks_per_side=m.looks_per_side,
-                spans=m._spans,
-                design_of_span=m._design_of_span, command_of=m.design_command,
-                envelope_index=m.envelope_index)
+                float(decision.time_s), x, rule=m.combination_rule)
         else:
             new = profile.with_decision(float(decision.position_m),
                                         m.speed_command(decision.speed_command_mps),
@@ -332,11 +341,14 @@ def _kinematics_system(x0: float, v0: float) -> SymbolicVectorSystem:
                                 output=[x0 + dx, speed])
 
 
-def _check_motion_limits(*, max_decel_mps2: float, max_accel_mps2: float,
-                         speed_gain_per_s: float, rate_hz: float, stop_speed_mps: float,
-                         creep_speed_mps: float, initial_speed_mps: float,
-                         envelope_decel_fraction: float, braking_margin_m: float) -> None:
+def _check_motion_limits(motion: MotionSettings, tracking: TrackingSettings,
+                         rate_hz: float) -> None:
     """:class:`LongitudinalMotion`'s checks of its rates, speeds and margins, in order."""
+    max_decel_mps2, max_accel_mps2 = motion.max_decel_mps2, motion.max_accel_mps2
+    stop_speed_mps, initial_speed_mps = motion.stop_speed_mps, motion.initial_speed_mps
+    speed_gain_per_s, creep_speed_mps = tracking.speed_gain_per_s, tracking.creep_speed_mps
+    envelope_decel_fraction = tracking.envelope_decel_fraction
+    braking_margin_m = tracking.braking_margin_m
     for name, value in (("max_decel_mps2", max_decel_mps2),
                         ("max_accel_mps2", max_accel_mps2),
                         ("speed_gain_per_s", speed_gain_per_s), ("rate_hz", rate_hz),
@@ -355,11 +367,13 @@ def _check_motion_limits(*, max_decel_mps2: float, max_accel_mps2: float,
                           ">= 0")
 
 
-def _check_decision_options(*, join, design_speeds_mps, frontier_speed_mps, window_m: float,
-                            spans, envelope_index, tolerance,
-                            looks_per_side: int = LOOKS_PER_SIDE) -> None:
+def _check_decision_options(designs: "ProfileDesigns") -> None:
     """:class:`LongitudinalMotion`'s checks of its join table, frontier speed and combined
     decisions, in order."""
+    join, design_speeds_mps = designs.join, designs.design_speeds_mps
+    frontier_speed_mps, window_m = designs.frontier_speed_mps, designs.window_m
+    spans, envelope_index = designs.spans, designs.envelope_index
+    tolerance, looks_per_side = designs.tolerance, designs.looks_per_side
     if (join is None) != (design_speeds_mps is None):
         raise ConfigError("longitudinal: join and design_speeds_mps go together")
     if frontier_speed_mps is not None and not (math.isfinite(frontier_speed_mps)
@@ -411,14 +425,7 @@ class LongitudinalMotion(Diagram):
         t = tracking if tracking is not None else TrackingSettings()
         d = designs if designs is not None else ProfileDesigns()
         initial_speed_mps = motion.initial_speed_mps
-        _check_motion_limits(max_decel_mps2=motion.max_decel_mps2,
-                             max_accel_mps2=motion.max_accel_mps2,
-                             speed_gain_per_s=t.speed_gain_per_s, rate_hz=rate_hz,
-                             stop_speed_mps=motion.stop_speed_mps,
-                             creep_speed_mps=t.creep_speed_mps,
-                             initial_speed_mps=initial_speed_mps,
-                             envelope_decel_fraction=t.envelope_decel_fraction,
-                             braking_margin_m=t.braking_margin_m)
+        _check_motion_limits(motion, t, rate_hz)
         self.max_decel_mps2 = float(motion.max_decel_mps2)
         self.max_accel_mps2 = float(motion.max_accel_mps2)
         self.speed_gain_per_s = float(t.speed_gain_per_s)
@@ -426,10 +433,7 @@ class LongitudinalMotion(Diagram):
         self.envelope_decel_mps2 = t.envelope_decel_fraction * self.max_decel_mps2
         self.braking_margin_m = float(t.braking_margin_m)
         self.creep_speed_mps = float(t.creep_speed_mps)
-        _check_decision_options(join=d.join, design_speeds_mps=d.design_speeds_mps,
-                                frontier_speed_mps=d.frontier_speed_mps, window_m=d.window_m,
-                                spans=d.spans, envelope_index=d.envelope_index,
-                                tolerance=d.tolerance, looks_per_side=d.looks_per_side)
+        _check_decision_options(d)
         self._join, self._speeds = d.join, d.design_speeds_mps
         self._spans = None if d.spans is None else [tuple(map(int, s)) for s in d.spans]
         self._design_of_span = (None if d.spans is None
@@ -471,6 +475,15 @@ class LongitudinalMotion(Diagram):
             return None
         return lambda a, b: (self.speed_command(self._speeds[self._join[(a, b)]]),
                              self._join[(a, b)])
+
+    @property
+    def combination_rule(self) -> CombinationRule:
+        """The rule :meth:`SpeedProfile.with_combined_decision` combines decisions by (the
+        block's spans, commands, envelope, window and tolerance); only when it
+        :attr:`combines`."""
+        return CombinationRule(self._spans, self._design_of_span, self.design_command,
+                               self.envelope_index, self.window_m, self.tolerance,
+                               self.looks_per_side)
 
     @property
     def combines(self) -> bool:

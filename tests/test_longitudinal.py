@@ -11,7 +11,12 @@ from pydrake.systems.framework import DiagramBuilder, LeafSystem
 from pydrake.systems.primitives import ConstantValueSource, LogVectorOutput
 
 from drake_cert.errors import ConfigError
-from drake_cert.systems.longitudinal import LongitudinalMotion, SpeedProfile, speed_reference
+from drake_cert.systems.longitudinal import (
+    CombinationRule,
+    LongitudinalMotion,
+    SpeedProfile,
+    speed_reference,
+)
 from drake_cert.systems.scenario import MotionSettings
 
 A_DEC, A_ACC = 4.0, 2.0
@@ -176,14 +181,17 @@ RANGE_SPEEDS = [19.0, 16.0, 10.0, 15.0, 9.5, 6.0]
 SPANS = {r: i for i, r in enumerate(RANGES)}
 
 
+def _rule(window_m, tolerance, **more):
+    return CombinationRule(spans=RANGES, design_of_span=SPANS,
+                           command_of=lambda d: RANGE_SPEEDS[d], envelope_index=5,
+                           window_m=window_m, tolerance=tolerance, **more)
+
+
 def _combine(looks_designs, window_m=30.0, x=0.0, tolerance=1):
     prof = SpeedProfile(((-math.inf, 6.0, 5),))
     for k, (look, design) in enumerate(looks_designs):
-        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x, window_m=window_m,
-                                           tolerance=tolerance, spans=RANGES,
-                                           design_of_span=SPANS,
-                                           command_of=lambda d: RANGE_SPEEDS[d],
-                                           envelope_index=5)
+        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x,
+                                           rule=_rule(window_m, tolerance))
     return prof
 
 
@@ -279,10 +287,7 @@ def _random_look(rng, condition, wrong):
 
 def _combined_step(prof, look, design, k, x, **rule):
     """The profile after tick k's look, combined by the rule of ``rule`` (window, tolerance)."""
-    return prof.with_combined_decision(look, design, 0.1 * (k + 1), x, spans=RANGES,
-                                       design_of_span=SPANS,
-                                       command_of=lambda d: RANGE_SPEEDS[d],
-                                       envelope_index=5, **rule)
+    return prof.with_combined_decision(look, design, 0.1 * (k + 1), x, rule=_rule(**rule))
 
 
 @pytest.mark.parametrize("tolerance", [1, 2])
@@ -352,10 +357,8 @@ def test_a_window_longer_than_the_look_ahead_reaches_behind_the_car():
     prof = SpeedProfile(((-math.inf, 6.0, 5),))
     for k, (look, design, x) in enumerate([(38.0, 0, 0.0), (40.0, 0, 0.0), (42.0, 0, 44.0),
                                             (44.0, 5, 45.0), (46.0, 0, 45.5), (48.0, 0, 45.5)]):
-        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x, window_m=60.0,
-                                           tolerance=1, spans=RANGES, design_of_span=SPANS,
-                                           command_of=lambda d: RANGE_SPEEDS[d],
-                                           envelope_index=5)
+        prof = prof.with_combined_decision(look, design, 0.1 * (k + 1), x,
+                                           rule=_rule(60.0, 1))
     assert prof.in_force(45.5) == (19.0, 0) and prof.in_force(43.0) == (19.0, 0)
     assert prof.in_force(47.0) == (6.0, 5)  # the newest stretch: one frame bounds it so far
 
@@ -370,10 +373,7 @@ def test_any_sequence_of_decisions_builds_a_sorted_profile_of_lattice_ranges(win
     for k in range(400):
         look += float(rng.uniform(1.0, 4.0))
         prof = prof.with_combined_decision(look, int(rng.integers(0, 6)), 0.1 * (k + 1),
-                                           look - 40.0, window_m=window_m, tolerance=1,
-                                           spans=RANGES, design_of_span=SPANS,
-                                           command_of=lambda d: RANGE_SPEEDS[d],
-                                           envelope_index=5)
+                                           look - 40.0, rule=_rule(window_m, 1))
         positions = [e[0] for e in prof.entries]
         assert positions == sorted(positions)
         assert all(e[2] in range(6) and e[1] == RANGE_SPEEDS[e[2]] for e in prof.entries[1:])
