@@ -35,6 +35,7 @@ from drake_cert.config import Settings, VehicleParams
 from drake_cert.errors import ConfigError
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.systems.l1_controller import L1AdaptiveController
+from drake_cert.systems.l1_law import L1Options
 from drake_cert.systems.l1_reference import L1AdaptiveControllerReference
 from drake_cert.systems.plants import (
     ExactDiscreteLinearPlant,
@@ -145,9 +146,10 @@ def build_closed_loop(*, vehicle: VehicleParams, design: ControllerDesign, setti
     ctl = settings.controller
     preview = ctl.preview_window_s > 0
     controller = builder.AddSystem(controller_class(
-        vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps, law=law,
-        e2dot_from_yaw_rate=plant == "nonlinear",  # eq. 2.45's e2dot does not jump (l1_law)
-        curvature_preview=preview))
+        vehicle=vehicle, design=design, settings=settings, speed_mps=speed_mps,
+        options=L1Options(
+            law=law, curvature_preview=preview,
+            e2dot_from_yaw_rate=plant == "nonlinear")))  # eq. 2.45's e2dot does not jump
     if plant == "nonlinear":
         plant_sys = builder.AddSystem(NonlinearLateralPlant(vehicle))
     elif plant == "linear":

@@ -76,9 +76,10 @@ def piecewise_constant_system(p: L1Parameters, preview: bool = False) -> AffineS
 class L1AdaptiveController(Diagram):
     """L1 adaptive lateral controller for one design at speed V (DESIGN 4).
 
-    ``law`` is "piecewise_constant" (sampled at settings.controller.sample_period_s) or
-    "gradient" (Gamma = settings.controller.adaptation_gain, projection operator); None
-    takes settings.controller.adaptation_law. ``parameters`` holds the derived numbers.
+    ``options`` (:class:`~drake_cert.systems.l1_law.L1Options`): ``law`` is
+    "piecewise_constant" (sampled at settings.controller.sample_period_s) or "gradient"
+    (Gamma = settings.controller.adaptation_gain, projection operator); None takes
+    settings.controller.adaptation_law. ``parameters`` holds the derived numbers.
     ``e2dot_from_yaw_rate`` (default True: a vehicle, the Fiala plant) says the measured e2dot
     jumps with the curvature; False for the linear plants (:func:`l1_law.l1_parameters`).
     ``curvature_preview`` adds the input port ``curvature_preview_per_m`` (1/m): the
@@ -88,10 +89,12 @@ class L1AdaptiveController(Diagram):
     """
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                 speed_mps: float, law: str | None = None,
-                 e2dot_from_yaw_rate: bool = True, curvature_preview: bool = False):
+                 speed_mps: float, options: l1_law.L1Options | None = None):
         super().__init__()
-        law = law or settings.controller.adaptation_law
+        options = options or l1_law.L1Options()
+        e2dot_from_yaw_rate, curvature_preview = (options.e2dot_from_yaw_rate,
+                                                  options.curvature_preview)
+        law = options.law or settings.controller.adaptation_law
         if law not in l1_law.LAWS:
             raise ConfigError(f"unknown adaptation law {law!r}; expected one of {l1_law.LAWS}")
         if not speed_mps > 0:

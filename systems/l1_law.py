@@ -208,27 +208,50 @@ def adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s):
     return w_hat * u_ad + gm.dot(theta_hat, s) + sigma_hat
 
 
-def predictor_derivative(p: L1Parameters, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad,
+@dataclasses.dataclass(frozen=True)
+class L1Options:
+    """Which L1 law a single-design controller runs and what it is wired to
+    (:class:`~drake_cert.systems.l1_controller.L1AdaptiveController` and its reference)."""
+
+    law: str | None = None  # "piecewise_constant" or "gradient"; None: the settings' law
+    e2dot_from_yaw_rate: bool = True  # measured e2dot jumps with kappa (a vehicle, Fiala)
+    curvature_preview: bool = False  # input curvature_preview_per_m: u_ff at the preview
+
+
+@dataclasses.dataclass(frozen=True)
+class AdaptiveEstimates:
+    """The gradient law's estimates and filter state (floats or symbolic expressions)."""
+
+    w_hat: object  # input-gain estimate (dimensionless)
+    theta_hat: object  # state-gain estimate (4,), rad per unit of s
+    sigma_hat: object  # disturbance estimate (rad)
+    u_ad: object  # adaptive steering input (rad)
+
+
+def predictor_derivative(p: L1Parameters, s_hat, s, estimates: AdaptiveEstimates,
                          curvature, feedforward_curvature=None):
     """State predictor with the known inputs u_ff and g_hat psidot_des (DESIGN 4).
 
     ``u_ff`` is the one the command applies (at ``feedforward_curvature``, the preview, when
     given); ``g_hat psidot_des`` is the road as it is under the car (``curvature``).
     """
+    e = estimates
     kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
     psidot = p.speed_mps * curvature
-    eta = adaptive_signal(w_hat, theta_hat, sigma_hat, u_ad, s)
+    eta = adaptive_signal(e.w_hat, e.theta_hat, e.sigma_hat, e.u_ad, s)
     return (gm.matvec(p.a_m, s_hat) + gm.scaled(p.b_m, eta + curvature_feedforward(p, kappa_ff))
             + gm.scaled(p.g_hat, psidot))
 
 
-def gradient_law(p: L1Parameters, s_tilde, s, w_hat, theta_hat, sigma_hat, u_ad):
+def gradient_law(p: L1Parameters, s_tilde, s, estimates: AdaptiveEstimates):
     """Paper eq. (adaptive) with projection about each set's centre: (w', theta', sigma').
 
     ``w_hat' = Gamma Proj(w_hat - w_c, -s_tilde' P b_m u_ad)``,
     ``theta_hat' = Gamma Proj(theta_hat, -s_tilde' P b_m s)``,
     ``sigma_hat' = Gamma Proj(sigma_hat, -s_tilde' P b_m)``.
     """
+    w_hat, theta_hat = estimates.w_hat, estimates.theta_hat
+    sigma_hat, u_ad = estimates.sigma_hat, estimates.u_ad
     e = p.projection_epsilon
     gamma = p.adaptation_gain
     pb = gm.dot(s_tilde, p.p_ad @ p.b_m)  # s_tilde' P b_m
@@ -254,10 +277,9 @@ def gradient_controller_derivatives(p: L1Parameters, z, s, curvature,
     q_hat, w_hat, theta_hat, sigma_hat, u_ad = unpack_gradient_state(z)
     s_hat = predicted_measurement(p, q_hat, curvature)
     s = np.asarray(s)
-    s_hat_dot = predictor_derivative(p, s_hat, s, w_hat, theta_hat, sigma_hat, u_ad, curvature,
-                                     feedforward_curvature)
-    w_dot, theta_dot, sigma_dot = gradient_law(p, s_hat - s, s, w_hat, theta_hat, sigma_hat,
-                                               u_ad)
+    estimates = AdaptiveEstimates(w_hat, theta_hat, sigma_hat, u_ad)
+    s_hat_dot = predictor_derivative(p, s_hat, s, estimates, curvature, feedforward_curvature)
+    w_dot, theta_dot, sigma_dot = gradient_law(p, s_hat - s, s, estimates)
     u_ad_dot = low_pass_filter_derivative(p, adaptive_signal(w_hat, theta_hat, sigma_hat,
                                                              u_ad, s))
     return np.concatenate([s_hat_dot, [w_dot], theta_dot, [sigma_dot], [u_ad_dot]])

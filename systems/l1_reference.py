@@ -19,10 +19,12 @@ class L1AdaptiveControllerReference(LeafSystem):
     :mod:`drake_cert.systems.l1_controller`)."""
 
     def __init__(self, *, vehicle: VehicleParams, design: ControllerDesign, settings: Settings,
-                 speed_mps: float, law: str | None = None,
-                 e2dot_from_yaw_rate: bool = True, curvature_preview: bool = False):
+                 speed_mps: float, options: l1_law.L1Options | None = None):
         super().__init__()
-        self.law = law or settings.controller.adaptation_law
+        options = options or l1_law.L1Options()
+        e2dot_from_yaw_rate, curvature_preview = (options.e2dot_from_yaw_rate,
+                                                  options.curvature_preview)
+        self.law = options.law or settings.controller.adaptation_law
         if self.law not in l1_law.LAWS:
             raise ConfigError(f"unknown adaptation law {self.law!r}; expected one of "
                               f"{l1_law.LAWS}")

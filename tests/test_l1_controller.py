@@ -31,7 +31,7 @@ def heavy_rain_design(default_design_table):
 
 def _controller_context(law):
     ctrl = L1AdaptiveController(vehicle=CAR, design=DESIGN, settings=SETTINGS,
-                                speed_mps=SPEED, law=law)
+                                speed_mps=SPEED, options=l1_law.L1Options(law=law))
     ctx = ctrl.CreateDefaultContext()
     s = np.array([0.2, -0.3, 0.05, 0.1])
     kappa = 1 / 60
