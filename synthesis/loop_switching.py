@@ -16,7 +16,8 @@ Where it is checked. For a fixed speed ``R_i`` is affine in C (``theta``, the un
 and ``w`` are; the piecewise-constant law's ``r_c`` depends on V only), so the two ends of the
 design's certified interval cover every C between them exactly. In V it is not affine (``r_c``
 holds ``A_m(V)^-1``): speeds are checked on a grid of :data:`LOOP_SPEED_STEP_MPS` from
-``speed_min`` to the design's safe speed, as condition 5.3b is for this law; a measurement
+``speed_min`` to the design's safe speed plus :data:`LOOP_SPEED_MARGIN_MPS` (the margin of the
+state-feedback box), as condition 5.3b is for this law; a measurement
 between grid speeds, not a certificate, and stated so. The gradient law's filter row is affine
 in ``(C, C/V, 1/V)`` and its corners would suffice, but for the shipped designs no common
 matrix exists for it (measured): its families get none.
@@ -33,20 +34,33 @@ import numpy as np
 from drake_cert.config import VehicleParams
 from drake_cert.synthesis.conditions import GRADIENT, reference_system_matrix
 from drake_cert.synthesis.design import ControllerDesign
+from drake_cert.synthesis.joint_gains import GAIN_BOX_SPEED_MARGIN_MPS
 from drake_cert.synthesis.lyapunov_rate import certified_rate
 
 LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
+# the loops are certified this far above each design's safe speed (m/s), as its state-feedback
+# gain box is (joint_gains.GAIN_BOX_SPEED_MARGIN_MPS): the car's speed tracking error and the
+# drive's 0.1 m/s protection slack lie within it (docs/design.md 5.6 (b))
+LOOP_SPEED_MARGIN_MPS = GAIN_BOX_SPEED_MARGIN_MPS
 LOOP_DECAY_TRIALS = (0.1, 0.05, 0.02, 0.0)  # lambda_z tried, largest first (1/s)
 COARSE_STRIDE = 4  # the first LMI uses every 4th grid speed (1 m/s)
 LOOP_ROUNDS = 4  # LMI solves with grid points added where the matrix falls short
 
 
+def loop_speed_top(design: ControllerDesign, speed_min_mps: float) -> float:
+    """The highest speed (m/s) the loop certificate covers for ``design``: its safe speed plus
+    :data:`LOOP_SPEED_MARGIN_MPS`, within the speeds its gain is certified for
+    (``gain_speed_max_mps``), at least ``speed_min``."""
+    top = min(design.speed_mps + LOOP_SPEED_MARGIN_MPS, design.gain_speed_max_mps)
+    return max(top, design.speed_mps, speed_min_mps)
+
+
 def loop_speeds(design: ControllerDesign, speed_min_mps: float, offset: float = 0.0,
                 stride: int = 1) -> np.ndarray:
-    """``speed_min, speed_min + step, ...`` up to the design's safe speed (both ends
+    """``speed_min, speed_min + step, ...`` up to :func:`loop_speed_top` (both ends
     included); with ``offset`` (a fraction of the step) the grid is shifted inside the range
     (the check's), with ``stride`` every stride-th speed is kept."""
-    top = max(design.speed_mps, speed_min_mps)
+    top = loop_speed_top(design, speed_min_mps)
     count = int(np.floor((top - speed_min_mps) / LOOP_SPEED_STEP_MPS + 1e-9))
     grid = speed_min_mps + LOOP_SPEED_STEP_MPS * (np.arange(0, count + 1, stride) + offset)
     grid = grid[grid <= top + 1e-12]

@@ -197,10 +197,13 @@ def _dwell_failures(matrices: dict[str, np.ndarray], certificate: SwitchingCerti
 
 
 def check_speeds(design: ControllerDesign, speed_min_mps: float) -> np.ndarray:
-    """The loop check's speeds: both ends of ``[speed_min, design speed]`` and the points
-    half a step inside a grid of :data:`LOOP_CHECK_STEP_MPS` (speeds the synthesis did not
-    pose its LMI at)."""
-    top = max(design.speed_mps, speed_min_mps)
+    """The loop check's speeds: both ends of ``[speed_min, design speed + margin]``
+    (:func:`drake_cert.synthesis.loop_switching.loop_speed_top`) and the points half a step
+    inside a grid of :data:`LOOP_CHECK_STEP_MPS` (speeds the synthesis did not pose its LMI
+    at)."""
+    from drake_cert.synthesis.loop_switching import loop_speed_top
+
+    top = loop_speed_top(design, speed_min_mps)
     inner = np.arange(speed_min_mps + 0.5 * LOOP_CHECK_STEP_MPS, top, LOOP_CHECK_STEP_MPS)
     return np.unique(np.concatenate([[speed_min_mps], inner, [top]]))
 
