@@ -441,10 +441,14 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
                    switching_certificate_met=True)
     if loop_missing and times:  # the L1 loops that ran switched with no certificate for them
         out["switching_certificate_met"] = False
-        out["switching_note"] = LOOP_MISSING_NOTE
+        out["switching_note"] = (GRADIENT_LOOP_NOTE if certificate.loop_law == "gradient"
+                                 else LOOP_MISSING_NOTE)
     return out
 
 
+GRADIENT_LOOP_NOTE = ("the gradient law's L1 loops have no switching certificate (no common "
+                      "Lyapunov matrix exists for its reference rows, docs/design.md 5.6): its "
+                      "switching is not certified; the piecewise-constant law's is")
 LOOP_MISSING_NOTE = ("the state-feedback loops share a certificate but the L1 loops with their "
                      "filter state share no Lyapunov matrix, so their switching is not certified "
                      "(docs/design.md 5.6)")

@@ -322,6 +322,10 @@ def test_a_drive_that_switches_l1_loops_without_a_common_matrix_is_not_reported_
     assert report["switching_certificate_met"] is False
     assert report["loop_switching_decay_per_s"] == 0.0
     assert drive_warnings(report) == [switching.LOOP_MISSING_NOTE]
+    gradient = dataclasses.replace(bare, loop_law="gradient")
+    report = switching.drive_switching_report(gradient, [1.0])
+    assert report["switching_certificate_met"] is False
+    assert report["switching_note"] == switching.GRADIENT_LOOP_NOTE
     lines = format_switching([bare, cert]).splitlines()
     assert "NOT certified" in lines[0] and "L1 loops: common matrix" in lines[1]
 
