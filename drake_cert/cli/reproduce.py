@@ -12,6 +12,7 @@ frames they hold.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 
@@ -183,8 +184,8 @@ def run(args) -> int:
         print(json.dumps({"out": str(out), "wall_s": round(wall, 1), "frames_done": done,
                           "complete": False}))
         return 0
-    _write_reproduction(args, config, out, store, designs, rows, started, wall, done, complete,
-                        cpu)
+    _write_reproduction(args, config, out, store, designs,
+                        _Outcome(rows, started, wall, cpu, done, complete))
     return 0
 
 
@@ -227,10 +228,23 @@ def _reproduce_with_progress(config, executor, store, stop, designs, cpu) -> lis
             b.close()
 
 
-def _write_reproduction(args, config, out, store, designs, rows, started, wall, done,
-                        complete, cpu) -> None:
+@dataclasses.dataclass(frozen=True)
+class _Outcome:
+    """What one invocation of reproduce computed and how long it took."""
+
+    rows: list  # the frame rows
+    started: dict  # provenance (revision, time) the invocation started with
+    wall: float  # wall-clock seconds of the frames phase
+    cpu: dict  # the workers' CPU seconds per stage, this invocation
+    done: dict  # preset -> frames done
+    complete: bool  # every preset has all its frames
+
+
+def _write_reproduction(args, config, out, store, designs, outcome: _Outcome) -> None:
     """Log the invocation, write the tables, claims and meta under ``out`` and print the
     summary line."""
+    rows, started, wall = outcome.rows, outcome.started, outcome.wall
+    cpu, done, complete = outcome.cpu, outcome.done, outcome.complete
     from drake_cert.config import load_conditions
     from drake_cert.experiments import claims, outputs, paper_claims, tables
     from drake_cert.experiments.reproduce import tasks_for

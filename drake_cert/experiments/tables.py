@@ -286,13 +286,14 @@ def _preset_head(presets: list[str]) -> str:
     return "| | " + " | ".join(presets) + " |\n|---|" + "---|" * len(presets)
 
 
-def _ours_row(summary: list[dict], presets: list[str], title: str, metric: str, pipeline: str,
-              attack: str, e: float, paper_table: str | None, **key) -> str:
+def _ours_row(summary: list[dict], presets: list[str], title: str, metric: str, cell: dict,
+              paper_table: str | None) -> str:
     """A row of ours per preset, with the paper's number where it is the same metric at the
-    same budget."""
+    same budget; ``cell``: the summary keys of the cell in each preset (``pipeline``,
+    ``attack``, ``eps`` and any other)."""
     return "| " + title + " | " + " | ".join(_ours_vs_paper(
-        _cell(summary, preset=p, pipeline=pipeline, attack=attack, eps=e, **key),
-        PAPER.get((paper_table, p)), metric, _at_paper_budget(attack, e))
+        _cell(summary, preset=p, **cell),
+        PAPER.get((paper_table, p)), metric, _at_paper_budget(cell["attack"], cell["eps"]))
         for p in presets) + " |"
 
 
@@ -322,17 +323,17 @@ def _f_tables(summary: list[dict], presets: list[str], eps: float, clean: dict) 
             _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
             PAPER.get(("f_clean", p)), "velocity_mps") for p in presets) + " |"]
     lines += ["", f"### f under PGD (eps = {eps})", "", head,
-              _ours_row(summary, presets, "accuracy under SA (%)", "accuracy", "f", "sa", eps,
-                        None),
-              _ours_row(summary, presets, "accuracy under EA (%)", "accuracy", "f", "ea", eps,
-                        None),
+              _ours_row(summary, presets, "accuracy under SA (%)", "accuracy",
+                        dict(pipeline="f", attack="sa", eps=eps), None),
+              _ours_row(summary, presets, "accuracy under EA (%)", "accuracy",
+                        dict(pipeline="f", attack="ea", eps=eps), None),
               _paper_row(presets, "paper's accuracy under PGD (%, attack objective not stated)",
                          "f_attack", "accuracy"),
-              _ours_row(summary, presets, "instability under SA (%)", "instability_pct", "f",
-                        "sa", eps, None),
+              _ours_row(summary, presets, "instability under SA (%)", "instability_pct",
+                        dict(pipeline="f", attack="sa", eps=eps), None),
               _paper_row(presets, "paper's instability under SA", "f_attack", "instability"),
-              _ours_row(summary, presets, "velocity under EA (m/s)", "velocity_mps", "f", "ea",
-                        eps, "f_attack")]
+              _ours_row(summary, presets, "velocity under EA (m/s)", "velocity_mps",
+                        dict(pipeline="f", attack="ea", eps=eps), "f_attack")]
     if not _at_paper_budget("ea", eps):
         lines.append(_paper_row(presets, f"paper's velocity under PGD (m/s, delta = "
                                 f"{PAPER_BUDGET}: another budget)", "f_attack", "velocity_mps"))
@@ -348,17 +349,17 @@ def _paper_budget_table(summary: list[dict], config, presets: list[str]) -> list
     lines = ["", f"### At the paper's budget: eps = {e:g} (its delta = {PAPER_BUDGET} read as "
              "an L2 norm over [0, 255] pixel values)", "",
              _preset_head(presets),
-             _ours_row(summary, presets, "f accuracy under SA (%)", "accuracy", "f", "sa", e,
-                       None),
-             _ours_row(summary, presets, "f accuracy under EA (%)", "accuracy", "f", "ea", e,
-                       None),
+             _ours_row(summary, presets, "f accuracy under SA (%)", "accuracy",
+                       dict(pipeline="f", attack="sa", eps=e), None),
+             _ours_row(summary, presets, "f accuracy under EA (%)", "accuracy",
+                       dict(pipeline="f", attack="ea", eps=e), None),
              _paper_row(presets, "paper's f accuracy under PGD (%, attack objective not "
                         "stated)", "f_attack", "accuracy"),
-             _ours_row(summary, presets, "f instability under SA (%)", "instability_pct", "f",
-                       "sa", e, None),
+             _ours_row(summary, presets, "f instability under SA (%)", "instability_pct",
+                       dict(pipeline="f", attack="sa", eps=e), None),
              _paper_row(presets, "paper's f instability under SA", "f_attack", "instability"),
-             _ours_row(summary, presets, "f velocity under EA (m/s)", "velocity_mps", "f", "ea",
-                       e, "f_attack")]
+             _ours_row(summary, presets, "f velocity under EA (m/s)", "velocity_mps",
+                       dict(pipeline="f", attack="ea", eps=e), "f_attack")]
     for pipe in _g_pipelines(summary):
         for s in _sigmas_at(summary, pipe, e):
             name = f"{pipe} sigma {s:g}"
@@ -373,11 +374,11 @@ def _paper_budget_table(summary: list[dict], config, presets: list[str]) -> list
                     _paper(PAPER.get(("g_sa", p, s)), "instability") for p in presets) + " |")
     if _cell(summary, pipeline="f_reg", attack="sa", eps=e):
         lines += [_ours_row(summary, presets, "f_reg instability under SA (%)",
-                            "instability_pct", "f_reg", "sa", e, None),
+                            "instability_pct", dict(pipeline="f_reg", attack="sa", eps=e), None),
                   _paper_row(presets, "paper's f_reg instability under SA", "f_reg_attack",
                              "instability"),
                   _ours_row(summary, presets, "f_reg velocity under EA (m/s)", "velocity_mps",
-                            "f_reg", "ea", e, "f_reg_attack")]
+                            dict(pipeline="f_reg", attack="ea", eps=e), "f_reg_attack")]
         lines += [_instability_certified_row(summary, presets, f"h sigma {s:g}", "h", e, s)
                   for s in _sigmas_at(summary, "h", e)]
     return lines
