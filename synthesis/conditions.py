@@ -21,6 +21,7 @@ e. vehicle limits, each where it is given: ``rollover``, ``V^2 / R <= rollover_f
    ``V^2 / R <= lateral_accel_limit_mps2`` (settings); m/s^2.
 """
 
+import dataclasses
 import functools
 
 import cvxpy as cp
@@ -170,14 +171,26 @@ def reference_system_matrix(vehicle: VehicleParams, k_m, nominal_stiffness: floa
     return m
 
 
-def reference_stability_margin(vehicle: VehicleParams, k_m, interval, speed_lo_mps: float,
-                               speed_mps: float, filter_gain: float, stiffness_points: int,
-                               speed_points: int, law: str = GRADIENT) -> float:
-    """Condition b on a grid: ``-max Re eig`` of the reference system over C x [V_lo, V] (1/s)."""
+@dataclasses.dataclass(frozen=True)
+class OperatingBox:
+    """The stiffness interval x speed range condition b is stated on (DESIGN 5.3b)."""
+
+    interval: tuple[float, float]  # (C_lo, C_hi), N/rad; C_hat is its midpoint
+    speed_lo_mps: float  # V_lo (m/s)
+    speed_mps: float  # V_hi (m/s)
+
+
+def reference_stability_margin(vehicle: VehicleParams, k_m, box: OperatingBox,
+                               filter_gain: float, grid: tuple[int, int],
+                               law: str = GRADIENT) -> float:
+    """Condition b on a grid: ``-max Re eig`` of the reference system over C x [V_lo, V] (1/s);
+    ``grid``: (stiffness points, speed points), each at least 2."""
+    interval = box.interval
+    stiffness_points, speed_points = grid
     c_hat = 0.5 * (interval[0] + interval[1])
     mats = [reference_system_matrix(vehicle, k_m, c_hat, c, v, filter_gain, law)
             for c in np.linspace(interval[0], interval[1], max(stiffness_points, 2))
-            for v in np.linspace(speed_lo_mps, speed_mps, max(speed_points, 2))]
+            for v in np.linspace(box.speed_lo_mps, box.speed_mps, max(speed_points, 2))]
     return -float(np.linalg.eigvals(np.array(mats)).real.max())
 
 
@@ -196,8 +209,8 @@ def _reference_lmi_problem():
     return problem, mats, eps
 
 
-def reference_stability_lmi(vehicle: VehicleParams, k_m, interval, speed_lo_mps: float,
-                            speed_mps: float, filter_gain: float, lmi_margin: float) -> bool:
+def reference_stability_lmi(vehicle: VehicleParams, k_m, box: OperatingBox, filter_gain: float,
+                            lmi_margin: float) -> bool:
     """Condition b certified: one P with ``M_i' P + P M_i <= -eps I``, ``P >= I`` at 4 corners.
 
     The reference matrix is affine in ``(C, C/V, 1/V)`` (``theta`` carries ``C_hat / V``), i.e.
@@ -205,6 +218,7 @@ def reference_stability_lmi(vehicle: VehicleParams, k_m, interval, speed_lo_mps:
     interpolation (a convex combination) of the four corner matrices, so a common Lyapunov
     matrix at the corners certifies every C and every speed in ``[V_lo, V]``.
     """
+    interval, speed_lo_mps, speed_mps = box.interval, box.speed_lo_mps, box.speed_mps
     problem, mats, eps = _reference_lmi_problem()
     c_hat = 0.5 * (interval[0] + interval[1])
     scale = 0.0

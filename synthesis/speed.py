@@ -85,8 +85,8 @@ class IntervalEvaluator:
         """Grid eigenvalue margin of b at this single speed (C grid)."""
         syn = self.settings.synthesis
         return self._memo(("b", speed, k), lambda: cond.reference_stability_margin(
-            self.vehicle, self.k_m, self.interval, speed, speed, k,
-            syn.stiffness_grid_points, 2, self.law))
+            self.vehicle, self.k_m, cond.OperatingBox(self.interval, speed, speed), k,
+            (syn.stiffness_grid_points, 2), self.law))
 
     def offset_margin(self, speed) -> float:
         syn = self.settings.synthesis
@@ -110,18 +110,18 @@ class IntervalEvaluator:
         syn = self.settings.synthesis
         if self.law == cond.GRADIENT:
             return self._memo(("b-lmi", speed, k), lambda: certify_reference_stability(
-                self.vehicle, self.k_m, self.interval, syn.speed_min_mps, speed, k,
-                syn.lmi_margin))
+                self.vehicle, self.k_m, cond.OperatingBox(self.interval, syn.speed_min_mps, speed),
+                k, syn.lmi_margin))
         points_c, step_v = PC_REFERENCE_GRID
         points_v = max(2, int(np.ceil((speed - syn.speed_min_mps) / step_v)) + 1)
         return self._memo(("b-grid", speed, k), lambda: cond.reference_stability_margin(
-            self.vehicle, self.k_m, self.interval, syn.speed_min_mps, speed, k, points_c,
-            points_v, self.law) >= EIG_MARGIN_MIN_PER_S)
+            self.vehicle, self.k_m, cond.OperatingBox(self.interval, syn.speed_min_mps, speed),
+            k, (points_c, points_v), self.law) >= EIG_MARGIN_MIN_PER_S)
 
 
-def certify_reference_stability(vehicle, k_m, interval, speed_lo, speed_hi, k,
+def certify_reference_stability(vehicle, k_m, box: cond.OperatingBox, k,
                                 lmi_margin) -> bool:
-    """Condition b for every (C, V) in ``interval x [speed_lo, speed_hi]``, certified.
+    """Condition b for every (C, V) in ``box`` (``interval x [speed_lo, speed_hi]``), certified.
 
     The corner LMI (:func:`drake_cert.synthesis.conditions.reference_stability_lmi`) is tried on
     the whole speed range, and on failure on its two halves, recursively down to 0.25 m/s segments:
@@ -129,14 +129,15 @@ def certify_reference_stability(vehicle, k_m, interval, speed_lo, speed_hi, k,
     """
     @functools.cache
     def ok(lo, hi):
-        if cond.reference_stability_lmi(vehicle, k_m, interval, lo, hi, k, lmi_margin):
+        if cond.reference_stability_lmi(vehicle, k_m, cond.OperatingBox(box.interval, lo, hi),
+                                        k, lmi_margin):
             return True
         if hi - lo <= MIN_LMI_SEGMENT_MPS:
             return False
         mid = 0.5 * (lo + hi)
         return ok(lo, mid) and ok(mid, hi)
 
-    return ok(float(speed_lo), float(speed_hi))
+    return ok(float(box.speed_lo_mps), float(box.speed_mps))
 
 
 def speed_grid(settings: Settings, speed_hi_mps: float) -> np.ndarray:

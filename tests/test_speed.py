@@ -59,8 +59,8 @@ def test_every_safe_speed_meets_all_four_conditions_at_that_speed(default_design
         box = d.certified_interval  # the label interval widened to the tire's secant stiffness
         assert box[0] < d.stiffness_lo_n_per_rad and box[1] == d.stiffness_hi_n_per_rad
         assert cond.l1_condition_margin(vehicle, d.k_m, box, v, k, 9, 9) > 0.0
-        assert cond.reference_stability_margin(vehicle, d.k_m, box, syn.speed_min_mps, v,
-                                               k, 9, 25) > 0.0
+        assert cond.reference_stability_margin(
+            vehicle, d.k_m, cond.OperatingBox(box, syn.speed_min_mps, v), k, (9, 25)) > 0.0
         assert cond.steady_state_offset_margin(vehicle, d.k_m, box, v,
                                                syn.design_radius_m, settings.controller.q_ad_diag,
                                                9) > 0.0
