@@ -38,6 +38,7 @@ from drake_cert.systems.closed_loop import (
     simulate,
 )
 from drake_cert.systems.plants import (
+    PlantInputs,
     body_state_from_error,
     error_state_from_body,
     exact_discretisation,
@@ -86,7 +87,8 @@ def python_rhs(vehicle, p, plant, stiffness, mu, road):
         if plant == "linear":
             x_dot = linear_error_derivatives(vehicle, s, u, stiffness, speed, kappa)
         else:
-            x_dot = single_track_derivatives(vehicle, x, u, stiffness, mu, speed, kappa)
+            x_dot = single_track_derivatives(vehicle, x,
+                                             PlantInputs(u, stiffness, mu, speed, kappa))
         z_dot = l1_law.gradient_controller_derivatives(p, z, s, kappa)
         return np.concatenate([np.asarray(x_dot, float), np.asarray(z_dot, float)])
 
@@ -154,7 +156,8 @@ def scipy_sampled_nonlinear_baseline(vehicle, settings, design, mu, horizon):
             ss = error_state_from_body(xx, speed, kappa).astype(float)
             u = min(max(float(l1_law.steering_command(p, ss, u_ad, kappa)), -limit), limit)
             return np.asarray(single_track_derivatives(
-                vehicle, xx, u, design.stiffness_lo_n_per_rad, mu, speed, kappa), float)
+                vehicle, xx, PlantInputs(u, design.stiffness_lo_n_per_rad, mu, speed, kappa)),
+                float)
 
         x = solve_ivp(rhs, (0.0, ts), x, method="LSODA", rtol=1e-6, atol=1e-9).y[:, -1]
     return time.perf_counter() - start

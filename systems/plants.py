@@ -18,6 +18,8 @@ derivatives are evaluated in C++. ``ExactDiscreteLinearPlant`` is the zero-order
 discretisation of eq. 2.45 at a sample period, for fixed (C, V).
 """
 
+import dataclasses
+
 import numpy as np
 import pydrake.symbolic as sym
 import scipy.linalg
@@ -33,6 +35,17 @@ from drake_cert.systems import generic_math as gm
 PLANT_INPUTS = ("steering_rad", "stiffness_n_per_rad", "friction_mu", "speed_mps",
                 "curvature_per_m")
 STOP_SPEED_MPS = 5.0  # below this forward speed the lateral dynamics are frozen (DESIGN 2)
+
+
+@dataclasses.dataclass(frozen=True)
+class PlantInputs:
+    """The nonlinear plant's inputs (its ports, :data:`PLANT_INPUTS`); floats or symbolic."""
+
+    steering: object  # front steering angle u (rad)
+    stiffness: object  # cornering stiffness C per front tire (N/rad)
+    friction_mu: object  # tire-road friction coefficient
+    speed: object  # forward speed V (m/s)
+    curvature: object  # road curvature kappa (1/m)
 
 
 def frozen_below_stop_speed(derivatives_at, speed, stop_speed_mps: float):
@@ -87,9 +100,9 @@ def fiala_force_from_tan(tan_slip, stiffness, friction_mu, normal_load):
     return gm.where(gm.absolute(z) < 1.0, adhesion, -mu_fz * gm.sign(z))
 
 
-def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, friction_mu,
-                             speed, curvature):
-    """Time derivative of the body state ``x = [e1, vy, e2, r]`` of the nonlinear plant.
+def single_track_derivatives(vehicle: VehicleParams, x, inputs: PlantInputs):
+    """Time derivative of the body state ``x = [e1, vy, e2, r]`` of the nonlinear plant at
+    ``inputs`` (:class:`PlantInputs`: steering u, stiffness C, friction mu, V, kappa).
 
     Single track at constant forward speed V (body frame), lateral velocity vy (m/s), yaw
     rate r (rad/s), Frenet offset e1 and heading error e2 to a road of curvature kappa.
@@ -99,6 +112,8 @@ def single_track_derivatives(vehicle: VehicleParams, x, steering, stiffness, fri
     ``e1dot = V sin e2 + vy cos e2``, ``e2dot = r - psidot_road`` with
     ``psidot_road = kappa (V cos e2 - vy sin e2) / (1 - kappa e1)``.
     """
+    steering, stiffness, friction_mu = inputs.steering, inputs.stiffness, inputs.friction_mu
+    speed, curvature = inputs.speed, inputs.curvature
     e1, vy, e2, r = x
     m, iz, lf, lr = vehicle.mass_kg, vehicle.yaw_inertia_kg_m2, vehicle.lf_m, vehicle.lr_m
     fz_f, fz_r = static_tire_loads(vehicle)
@@ -145,17 +160,17 @@ def body_state_from_error(s, speed, curvature):
     return np.array([e1, vy, e2, r])
 
 
-def nonlinear_error_derivatives(vehicle: VehicleParams, s, steering, stiffness, friction_mu,
-                                speed, curvature):
-    """``sdot`` of the nonlinear plant in error coordinates at constant curvature.
+def nonlinear_error_derivatives(vehicle: VehicleParams, s, inputs: PlantInputs):
+    """``sdot`` of the nonlinear plant in error coordinates at constant curvature, at
+    ``inputs`` (:class:`PlantInputs`).
 
     Chain rule of :func:`error_state_from_body` along :func:`single_track_derivatives`
     (kappa held constant, as eq. 2.45 does); used to compare the two plants. Float or symbolic.
     """
+    speed, curvature = inputs.speed, inputs.curvature
     x = body_state_from_error(s, speed, curvature)
     e1, vy, e2, _ = x
-    e1_dot, vy_dot, e2_dot, r_dot = single_track_derivatives(
-        vehicle, x, steering, stiffness, friction_mu, speed, curvature)
+    e1_dot, vy_dot, e2_dot, r_dot = single_track_derivatives(vehicle, x, inputs)
     along = speed * gm.cos(e2) - vy * gm.sin(e2)  # road-direction speed (m/s)
     along_dot = (-speed * gm.sin(e2) - vy * gm.cos(e2)) * e2_dot - gm.sin(e2) * vy_dot
     shrink = 1.0 - curvature * e1
@@ -223,7 +238,8 @@ class NonlinearLateralPlant(_NamedInputPlant):
         builder = DiagramBuilder()
         with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
             x_dot = frozen_below_stop_speed(
-                lambda v_eff: single_track_derivatives(vehicle, x, u, c, mu, v_eff, kappa), v,
+                lambda v_eff: single_track_derivatives(vehicle, x,
+                                                       PlantInputs(u, c, mu, v_eff, kappa)), v,
                 stop_speed_mps)
         dynamics = builder.AddNamedSystem("single_track", SymbolicVectorSystem(
             state=x, input=[u, c, mu, v, kappa], dynamics=x_dot, output=x))

@@ -13,7 +13,7 @@ from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import ConfigError
 from drake_cert.synthesis.table import synthesize_label_range, synthesize_table
 from drake_cert.synthesis.verify import cornering_slip_angles
-from drake_cert.systems.plants import single_track_derivatives
+from drake_cert.systems.plants import PlantInputs, single_track_derivatives
 
 CONDITIONS = load_conditions()
 SETTINGS = load_settings()
@@ -85,7 +85,7 @@ def test_the_nonlinear_plant_uses_the_rear_tires_stiffness():
     c, speed, vy = 60_000.0, 15.0, -1.0e-4
     rho = ESCORT.rear_stiffness_ratio
     x = np.array([0.0, vy, 0.0, 0.0])
-    front_and_rear = single_track_derivatives(ESCORT, x, 0.0, c, 1.0, speed, 0.0)
+    front_and_rear = single_track_derivatives(ESCORT, x, PlantInputs(0.0, c, 1.0, speed, 0.0))
     # with r = 0 and u = 0 both axles see tan a = vy / V; vy_dot = (F_f + F_r) / m
     tan_a = vy / speed
     linear = -(2 * c + 2 * rho * c) * tan_a / ESCORT.mass_kg

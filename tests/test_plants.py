@@ -14,6 +14,7 @@ from drake_cert.systems.plants import (
     ExactDiscreteLinearPlant,
     LinearLateralPlant,
     NonlinearLateralPlant,
+    PlantInputs,
     body_state_from_error,
     error_state_from_body,
     exact_discretisation,
@@ -34,7 +35,8 @@ def _fix_inputs(system, context, values):
 @pytest.mark.parametrize("c, v", [(50_000.0, 20.0), (25_000.0, 8.0), (110_000.0, 28.0)])
 def test_nonlinear_plant_linearises_to_eq_2_45_on_a_straight_road(c, v):
     def f(z):  # z = [s, u, kappa] -> sdot
-        return nonlinear_error_derivatives(CAR, z[:4], z[4], c, 0.9, v, z[5]).astype(float)
+        return nonlinear_error_derivatives(CAR, z[:4],
+                                           PlantInputs(z[4], c, 0.9, v, z[5])).astype(float)
 
     # Small h: the Fiala |tan a| tan a term makes central differences O(h C / (mu Fz)).
     h = 1e-8
@@ -51,7 +53,8 @@ def test_nonlinear_plant_differs_from_eq_2_45_at_large_slip():
     s = np.array([0.0, 0.0, 0.0, 0.0])
     a, b, _ = lateral_error_dynamics(CAR, 50_000.0, 20.0)
     linear = b * 0.2
-    nonlinear = nonlinear_error_derivatives(CAR, s, 0.2, 50_000.0, 0.3, 20.0, 0.0).astype(float)
+    nonlinear = nonlinear_error_derivatives(CAR, s, PlantInputs(0.2, 50_000.0, 0.3, 20.0,
+                                                                0.0)).astype(float)
     fz_f = static_tire_loads(CAR)[0]
     # Saturated front axle: lateral acceleration bounded by 2 mu Fz_f cos(u) / m.
     assert abs(nonlinear[1]) <= 2 * 0.3 * fz_f / CAR.mass_kg + 1e-9
