@@ -62,6 +62,7 @@ from drake_cert.systems.certified_interval import CertifiedInterval, IntervalInp
 from drake_cert.systems.longitudinal import (
     BRAKING_MARGIN_M,
     ENVELOPE_DECEL_FRACTION,
+    BrakingLimits,
     LongitudinalMotion,
     ProfileDesigns,
     frontier_latency_s,
@@ -402,8 +403,8 @@ def check_look_ahead(scenario: Scenario, table: list[ControllerDesign]) -> None:
     top_index = max(range(len(table)), key=lambda i: _speeds(table)[i])
     top = _speeds(table)[top_index]
     lag = decision_lag_ticks(scenario)
-    kw = dict(decel_mps2=decel, margin_m=BRAKING_MARGIN_M, floor_speed_mps=floor,
-              lag_ticks=lag)
+    kw = dict(braking=BrakingLimits(decel_mps2=decel, margin_m=BRAKING_MARGIN_M,
+                                    floor_speed_mps=floor), lag_ticks=lag)
     supported = supported_speed_mps(cam.look_ahead_m, cam.rate_hz, **kw)
     if supported < top - 1e-9:
         needed = look_ahead_needed_m(top, cam.rate_hz, **kw)

@@ -234,13 +234,23 @@ def frontier_latency_s(rate_hz: float, offset_fraction: float = OFFSET_FRACTION,
     return (1.0 + offset_fraction + lag_ticks) / rate_hz
 
 
-def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: float,
-                        margin_m: float, floor_speed_mps: float,
+@dataclasses.dataclass(frozen=True)
+class BrakingLimits:
+    """How the car brakes for the end of the decided road (:func:`supported_speed_mps`)."""
+
+    decel_mps2: float  # the envelope's deceleration a (m/s^2)
+    margin_m: float  # stop this far before the frontier (m)
+    floor_speed_mps: float  # the slowest command v_f (m/s)
+
+
+def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, braking: BrakingLimits,
                         offset_fraction: float = OFFSET_FRACTION, lag_ticks: int = 0) -> float:
     """Largest constant speed (m/s) a camera look-ahead supports: the car can still brake at
-    ``decel_mps2`` to ``floor_speed_mps`` (the slowest command) ``margin_m`` before the
-    frontier when the frontier has not moved for :func:`frontier_latency_s`, i.e. the root of
-    ``v^2 = v_f^2 + 2 a (L - m - tau v)``."""
+    ``braking.decel_mps2`` to ``braking.floor_speed_mps`` (the slowest command)
+    ``braking.margin_m`` before the frontier when the frontier has not moved for
+    :func:`frontier_latency_s`, i.e. the root of ``v^2 = v_f^2 + 2 a (L - m - tau v)``."""
+    decel_mps2, margin_m = braking.decel_mps2, braking.margin_m
+    floor_speed_mps = braking.floor_speed_mps
     a, tau = float(decel_mps2), frontier_latency_s(rate_hz, offset_fraction, lag_ticks)
     c = floor_speed_mps**2 + 2.0 * a * (look_ahead_m - margin_m)
     if c <= 0.0:
@@ -248,10 +258,11 @@ def supported_speed_mps(look_ahead_m: float, rate_hz: float, *, decel_mps2: floa
     return max(-a * tau + math.sqrt((a * tau) ** 2 + c), 0.0)
 
 
-def look_ahead_needed_m(speed_mps: float, rate_hz: float, *, decel_mps2: float,
-                        margin_m: float, floor_speed_mps: float,
+def look_ahead_needed_m(speed_mps: float, rate_hz: float, *, braking: BrakingLimits,
                         offset_fraction: float = OFFSET_FRACTION, lag_ticks: int = 0) -> float:
     """The look-ahead (m) that supports ``speed_mps`` (inverse of :func:`supported_speed_mps`)."""
+    decel_mps2, margin_m = braking.decel_mps2, braking.margin_m
+    floor_speed_mps = braking.floor_speed_mps
     return (max(speed_mps**2 - floor_speed_mps**2, 0.0) / (2.0 * decel_mps2) + margin_m
             + frontier_latency_s(rate_hz, offset_fraction, lag_ticks) * speed_mps)
 

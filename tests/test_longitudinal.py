@@ -336,19 +336,20 @@ def test_the_frontier_brakes_for_the_slowest_command_at_the_last_look_point():
 
 def test_the_supported_speed_brakes_to_the_floor_on_a_frontier_that_has_not_moved():
     from drake_cert.systems.longitudinal import (
+        BrakingLimits,
         frontier_latency_s,
         look_ahead_needed_m,
         supported_speed_mps,
     )
 
-    v = supported_speed_mps(60.0, 5.0, decel_mps2=3.6, margin_m=2.0, floor_speed_mps=6.23)
+    braking = BrakingLimits(decel_mps2=3.6, margin_m=2.0, floor_speed_mps=6.23)
+    v = supported_speed_mps(60.0, 5.0, braking=braking)
     tau = frontier_latency_s(5.0)
     assert tau == pytest.approx(0.35)
     # at v the car has 60 - 2 - tau v left when the frontier is about to move: exactly its
     # braking distance to 6.23 m/s at 3.6 m/s^2
     assert (v**2 - 6.23**2) / 7.2 == pytest.approx(60.0 - 2.0 - tau * v)
-    assert look_ahead_needed_m(v, 5.0, decel_mps2=3.6, margin_m=2.0,
-                               floor_speed_mps=6.23) == pytest.approx(60.0)
+    assert look_ahead_needed_m(v, 5.0, braking=braking) == pytest.approx(60.0)
 
 
 def test_a_window_longer_than_the_look_ahead_reaches_behind_the_car():
