@@ -63,6 +63,16 @@ def friction_lower_bound(conditions: ConditionsTable, preset: str,
     return min(meeting) if meeting else min(c.friction_mu for c in conds)
 
 
+@dataclasses.dataclass(frozen=True)
+class LabelRange:
+    """What one design is synthesized for: the label names (grippiest first; [] for a
+    regression interval), their stiffness interval (N/rad) and least friction."""
+
+    labels: tuple | list
+    interval: tuple[float, float]  # (C_lo, C_hi) of this vehicle's tires, N/rad
+    friction_mu_lo: float
+
+
 @dataclasses.dataclass
 class DesignCache:
     """Per-interval gain and condition evaluations shared between designs, and the joint
@@ -159,8 +169,8 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
     syn = settings.synthesis
     best = None
     for slip_bound in slip_bound_candidates(settings):
-        design = design_for_slip_bound(vehicle, interval, friction_mu_lo, settings, labels,
-                                       cache, slip_bound, gain)
+        design = design_for_slip_bound(vehicle, LabelRange(labels, interval, friction_mu_lo),
+                                       settings, cache, slip_bound, gain)
         if (best is None or not best.has_safe_speed
                 or (design.has_safe_speed and design.speed_mps > best.speed_mps)):
             best = design
@@ -172,18 +182,21 @@ def synthesize_design(vehicle: VehicleParams, interval: tuple[float, float],
     return best
 
 
-def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
-                          friction_mu_lo: float, settings: Settings, labels,
+def design_for_slip_bound(vehicle: VehicleParams, label_range: LabelRange, settings: Settings,
                           cache: DesignCache, slip_bound: float,
                           gain=None) -> ControllerDesign:
-    """:func:`synthesize_design` at one normalised slip bound z_b.
+    """:func:`synthesize_design` at one normalised slip bound z_b, for ``label_range``
+    (:class:`LabelRange`: labels, stiffness interval, least friction).
 
     Every condition is evaluated on the certified interval ``[C_lo ratio(z_b), C_hi]``
     (:func:`drake_cert.synthesis.conditions.tire_stiffness_lo`), whose midpoint is ``C_hat``. An
     interval whose gain LMI is infeasible gives speed 0, ``failed_condition = 'gain_lmi'``, ``k_m =
     0``. ``gain``: a fixed ``(k_m, gain_speed_max_mps)`` instead of the interval's own LMI.
     """
+    labels, interval = label_range.labels, label_range.interval
+    friction_mu_lo = label_range.friction_mu_lo
     label_interval = (float(interval[0]), float(interval[1]))
+    searched = LabelRange(labels, label_interval, friction_mu_lo)
     certified = (tire_stiffness_lo(label_interval[0], slip_bound), label_interval[1])
     c_hat = 0.5 * (certified[0] + certified[1])
     law = settings.controller.adaptation_law
@@ -193,8 +206,7 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
         if key not in cache.evaluators:
             cache.evaluators[key] = IntervalEvaluator(vehicle, settings, certified, k_fixed,
                                                       v_fixed)
-        return _searched_design(cache.evaluators[key], labels, label_interval, c_hat,
-                                friction_mu_lo, slip_bound, law)
+        return _searched_design(cache.evaluators[key], searched, c_hat, slip_bound, law)
     if certified not in cache.evaluators and certified not in cache.failures:
         try:
             k_m, v_hi = synthesize_state_feedback(vehicle, certified, settings.synthesis)
@@ -207,12 +219,15 @@ def design_for_slip_bound(vehicle: VehicleParams, interval: tuple[float, float],
                                 float(friction_mu_lo), [0.0] * 4, 0.0,
                                 settings.synthesis.filter_gain_max, 0.0, GAIN_LMI, {},
                                 float(slip_bound), law)
-    return _searched_design(cache.evaluators[certified], labels, label_interval, c_hat,
-                            friction_mu_lo, slip_bound, law)
+    return _searched_design(cache.evaluators[certified], searched, c_hat, slip_bound, law)
 
 
-def _searched_design(evaluator: IntervalEvaluator, labels, label_interval, c_hat,
-                     friction_mu_lo, slip_bound, law) -> ControllerDesign:
+def _searched_design(evaluator: IntervalEvaluator, label_range: LabelRange, c_hat,
+                     slip_bound, law) -> ControllerDesign:
+    """The design of ``label_range`` with the evaluator's gains and the speed search's filter
+    gain and safe speed at ``slip_bound``."""
+    labels, label_interval = label_range.labels, label_range.interval
+    friction_mu_lo = label_range.friction_mu_lo
     result = search_speed(evaluator, friction_mu_lo, slip_bound)
     return ControllerDesign(
         labels=list(labels),
