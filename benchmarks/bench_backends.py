@@ -24,7 +24,7 @@ import time
 
 import torch
 
-from drake_cert.certification.backends import evaluated_model
+from drake_cert.certification.backends import Int8Calibration, evaluated_model
 from drake_cert.certification.sampler import NoisySampler, bf16_supported, with_precision
 from drake_cert.perception.datasets import load_split
 from drake_cert.perception.models import load_model
@@ -41,7 +41,8 @@ def build(name: str, model: torch.nn.Module, sigma: float, threads: int,
     start = time.perf_counter()
     if name == "ort-int8":
         base = evaluated_model(model, backend="onnxruntime", quantization="int8",
-                               calibration_frames=calibration, sigma=sigma, threads=threads)
+                               calibration=Int8Calibration(calibration, sigma),
+                               threads=threads)
     elif name == "ort-fp32":
         base = evaluated_model(model, backend="onnxruntime", threads=threads)
     else:

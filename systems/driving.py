@@ -42,7 +42,7 @@ from pydrake.systems.framework import Diagram, DiagramBuilder, EventStatus
 from pydrake.systems.primitives import LogVectorOutput, Saturation
 
 from drake_cert.certification.alpha_spending import AlphaSpending, planned_decisions
-from drake_cert.certification.backends import resolve_backend
+from drake_cert.certification.backends import Int8Calibration, resolve_backend
 from drake_cert.certification.intervals import candidate_ranges
 from drake_cert.certification.pac_conformal import PacTargets
 from drake_cert.certification.sampler import CalibrationSampling, resolve_precision
@@ -555,10 +555,11 @@ def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sig
 
         frames = load_split(p.preset, "calibration", conditions=conditions,
                             frames_per_class=8).images
+    calibration = Int8Calibration(
+        frames, sigma=max(sigma, 1e-3),  # base f (sigma 0): near-clean frames
+        seed=child_seed(scenario.seed, Purpose.QUANTIZATION_CALIBRATION))
     return evaluated_model(model, backend=p.backend, quantization=p.quantization,
-                           precision=resolve_precision(p.precision), calibration_frames=frames,
-                           sigma=max(sigma, 1e-3),  # base f (sigma 0): near-clean frames
-                           seed=child_seed(scenario.seed, Purpose.QUANTIZATION_CALIBRATION),
+                           precision=resolve_precision(p.precision), calibration=calibration,
                            threads=available_cores())
 
 

@@ -11,6 +11,7 @@ import torch
 
 from drake_cert.certification.backends import (
     BACKENDS,
+    Int8Calibration,
     evaluated_model,
     onnxruntime_available,
     resolve_backend,
@@ -50,7 +51,7 @@ def ort_fp32(model):
 def ort_int8(model, calibration_frames):
     pytest.importorskip("onnxruntime")
     return evaluated_model(model, backend="onnxruntime", quantization="int8",
-                           calibration_frames=calibration_frames, sigma=SIGMA)
+                           calibration=Int8Calibration(calibration_frames, SIGMA))
 
 
 def test_ort_fp32_is_the_torch_model_up_to_rounding(model, ort_fp32, noisy):
@@ -101,7 +102,7 @@ def test_int8_agrees_with_fp32_on_most_noisy_frames(model, ort_int8, noisy):
 def test_int8_quantization_is_deterministic(model, calibration_frames, ort_int8, noisy):
     before = set(Path(tempfile.gettempdir()).glob("drake-cert-int8.*"))
     again = evaluated_model(model, backend="onnxruntime", quantization="int8",
-                            calibration_frames=calibration_frames, sigma=SIGMA)
+                            calibration=Int8Calibration(calibration_frames, SIGMA))
     assert torch.equal(again(noisy), ort_int8(noisy))
     assert set(Path(tempfile.gettempdir()).glob("drake-cert-int8.*")) == before
 
@@ -117,7 +118,8 @@ def test_bad_combinations_are_refused(model):
         evaluated_model(model, backend="torch", quantization="int8")
     if onnxruntime_available():
         with pytest.raises(CertificationError, match="calibration_frames"):
-            evaluated_model(model, backend="onnxruntime", quantization="int8", sigma=SIGMA)
+            evaluated_model(model, backend="onnxruntime", quantization="int8",
+                            calibration=Int8Calibration(None, SIGMA))
     assert resolve_backend("torch") == "torch" and resolve_backend("auto") in BACKENDS
     assert evaluated_model(model) is model
 

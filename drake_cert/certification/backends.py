@@ -8,6 +8,7 @@ optional dependency (``pip install 'drake-cert[onnx]'``), imported only when use
 
 from __future__ import annotations
 
+import dataclasses
 import importlib.util
 import io
 import tempfile
@@ -108,6 +109,16 @@ def quantize_int8(model_bytes: bytes, calibration_frames: torch.Tensor, sigma: f
         return out.read_bytes()
 
 
+@dataclasses.dataclass(frozen=True)
+class Int8Calibration:
+    """What int8 quantization (:func:`quantize_int8`) is calibrated on: noisy copies of
+    ``frames`` at ``sigma`` drawn from the stream ``seed``."""
+
+    frames: torch.Tensor | None  # clean frames [N, 3, H, W] in [0, 1]
+    sigma: float | None  # noise std of the copies (pixel units)
+    seed: int = 0
+
+
 class OnnxRuntimeModel(torch.nn.Module):
     """A torch model evaluated by ONNX Runtime on the CPU: frames [B, 3, H, W] float32 ->
     float32 outputs of the torch model's shape ([B, K] logits, or the regressor's [B, 1] / [B]).
@@ -131,9 +142,12 @@ class OnnxRuntimeModel(torch.nn.Module):
     """
 
     def __init__(self, model: torch.nn.Module, *, quantization: str = "none",
-                 calibration_frames: torch.Tensor | None = None, sigma: float | None = None,
-                 seed: int = 0, threads: int | None = None, frame_size: int = 64):
+                 calibration: Int8Calibration | None = None, threads: int | None = None,
+                 frame_size: int = 64):
         super().__init__()
+        calibration = calibration or Int8Calibration(None, None)
+        calibration_frames, sigma = calibration.frames, calibration.sigma
+        seed = calibration.seed
         check_quantization(quantization)
         if quantization == "int8":
             if calibration_frames is None or calibration_frames.dim() != 4 or sigma is None:
@@ -172,14 +186,14 @@ class OnnxRuntimeModel(torch.nn.Module):
 
 
 def evaluated_model(model: torch.nn.Module, *, backend: str = "torch", quantization: str = "none",
-                    precision: str = "fp32", calibration_frames: torch.Tensor | None = None,
-                    sigma: float | None = None, seed: int = 0,
+                    precision: str = "fp32", calibration: Int8Calibration | None = None,
                     threads: int | None = None) -> torch.nn.Module:
     """The module the sampler should call for ``model`` (eval mode).
 
     backend "torch": ``model`` itself (bf16 is applied elsewhere, by ``with_precision``;
     int8 is not offered). "onnxruntime": an :class:`OnnxRuntimeModel` (fp32 only), int8 when
-    ``quantization="int8"``, which needs ``calibration_frames`` and ``sigma``. "auto" resolves
+    ``quantization="int8"``, which needs ``calibration`` (:class:`Int8Calibration`: the
+    calibration frames, sigma and seed). "auto" resolves
     by :func:`resolve_backend`. Raises :class:`CertificationError` on unknown names, on
     bf16 or int8 combinations that do not exist, and when onnxruntime is not installed.
     """
@@ -194,6 +208,5 @@ def evaluated_model(model: torch.nn.Module, *, backend: str = "torch", quantizat
                                  f"precision {precision!r}")
     if not onnxruntime_available():
         raise CertificationError(f"backend onnxruntime is not installed: {INSTALL_HINT}")
-    return OnnxRuntimeModel(model, quantization=quantization,
-                            calibration_frames=calibration_frames, sigma=sigma, seed=seed,
+    return OnnxRuntimeModel(model, quantization=quantization, calibration=calibration,
                             threads=threads)

@@ -65,15 +65,26 @@ class CalibrationWorker:
         return calibration_beta(self.config, task.preset, task.sigma, model, self.conditions)
 
 
-def map_calibrations(tasks: list[CalibrationTask], make_worker, stored: dict,
-                     put: Callable[[dict, float], None], executor=None,
-                     progress: Callable[[int], None] | None = None,
+@dataclasses.dataclass(frozen=True)
+class CalibrationLedger:
+    """Where :func:`map_calibrations` keeps its results: ``stored``, the calibrations so far
+    keyed by (preset, sigma), and ``put(stored, cpu_s)``, which writes them back."""
+
+    stored: dict
+    put: Callable[[dict, float], None]
+
+
+def map_calibrations(tasks: list[CalibrationTask], make_worker, ledger: CalibrationLedger,
+                     executor=None, progress: Callable[[int], None] | None = None,
                      spent: list[float] | None = None) -> dict:
     """The calibration of every (preset, sigma) task, spread over ``executor``; those already in
-    ``stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
-    ``put(stored, cpu_s)`` as it arrives with its workers' CPU seconds (a stopped run keeps
-    them, and the store's ledger their cost); the seconds are also appended to ``spent``."""
+    ``ledger.stored`` (keyed by (preset, sigma)) are not recomputed, each new one is handed to
+    ``ledger.put(stored, cpu_s)`` as it arrives with its workers' CPU seconds (a stopped run
+    keeps them, and the store's ledger their cost); the seconds are also appended to
+    ``spent``."""
     from drake_cert.experiments.executors import LocalExecutor, cpu_timed
+
+    stored, put = ledger.stored, ledger.put
 
     todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
 
@@ -101,8 +112,8 @@ def calibration_betas(config: ReproduceConfig, executor=None, store: RunStore | 
     stored = store.betas(identity) if store is not None else {}
     put = (lambda b, s: store.put_betas(identity, b, s)) if store is not None \
         else (lambda b, s: None)
-    return map_calibrations(tasks, lambda: CalibrationWorker(config), stored, put, executor,
-                            progress, spent)
+    return map_calibrations(tasks, lambda: CalibrationWorker(config),
+                            CalibrationLedger(stored, put), executor, progress, spent)
 
 
 def conformal_sigmas(config: ReproduceConfig) -> list[float]:
@@ -152,5 +163,5 @@ def conformal_calibrations(config: ReproduceConfig, executor=None, store: RunSto
     stored = store.conformal(identity) if store is not None else {}
     put = (lambda c, s: store.put_conformal(identity, c, s)) if store is not None \
         else (lambda c, s: None)
-    return map_calibrations(tasks, lambda: ConformalWorker(config), stored, put, executor,
-                            progress, spent)
+    return map_calibrations(tasks, lambda: ConformalWorker(config),
+                            CalibrationLedger(stored, put), executor, progress, spent)

@@ -31,12 +31,22 @@ FRAME_COLUMNS = ("preset", "frame", "position", "seed", "true_label", "stiffness
                  "design_labels", "velocity_mps", "left_lane", "peak_abs_e1_m")
 
 
-def write_results(out_dir: str | Path, rows: list[dict], summary: list[dict], config,
-                  conditions, meta: dict, plots: bool = True,
-                  designs: list | None = None) -> list[Path]:
+@dataclasses.dataclass(frozen=True)
+class RunResults:
+    """What a reproduction writes: the frame rows, the per-cell summary and the run's meta."""
+
+    rows: list[dict]
+    summary: list[dict]
+    meta: dict
+
+
+def write_results(out_dir: str | Path, results: RunResults, config, conditions,
+                  plots: bool = True, designs: list | None = None) -> list[Path]:
     """Write every output file under ``out_dir``; returns their paths. ``designs``: the run's
     design table, which ``traces.png`` drives (synthesized again when not given)."""
     from drake_cert.experiments import claims
+
+    rows, summary, meta = results.rows, results.summary, results.meta
 
     out = Path(out_dir)
     checked = claims.claims_document(rows, config.eps)

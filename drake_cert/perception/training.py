@@ -66,6 +66,16 @@ TRAINING_METHODS = ("gaussian", "consistency")
 
 
 @dataclasses.dataclass(frozen=True)
+class NoiseTraining:
+    """What a noise-trained run learns with: the noise level, the seed of its random streams
+    (:func:`epoch_generator`) and the hyper-parameters."""
+
+    sigma: float  # Gaussian noise std in [0, 1] pixel units
+    seed: int
+    config: TrainConfig
+
+
+@dataclasses.dataclass(frozen=True)
 class TrainRun:
     """How a training run is carried out, not what it learns (none of it is in the weights).
 
@@ -190,8 +200,8 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
                                                 run=run, epochs=cfg.epochs)
     for epoch in range(start_epoch, cfg.epochs):
         t0 = time.perf_counter()
-        loss, accuracy = train_epoch(model, optimizer, train_set, sigma=sigma, seed=seed,
-                                     epoch=epoch, config=cfg, run=run)
+        loss, accuracy = train_epoch(model, optimizer, train_set, epoch=epoch,
+                                     training=NoiseTraining(sigma, seed, cfg), run=run)
         seconds += time.perf_counter() - t0
         history.append({"epoch": epoch + 1, "loss": loss, "accuracy": accuracy})
         if progress:
@@ -255,14 +265,15 @@ def _resume(checkpoint, signature: dict, model, optimizer, *, run: TrainRun,
     return start_epoch, float(state["seconds"]), list(state["history"])
 
 
-def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, sigma: float, seed: int,
-                epoch: int, config: TrainConfig,
-                run: TrainRun | None = None) -> tuple[float, float]:
-    """One epoch (0-based ``epoch``) of noise-trained SGD with the configuration's method; its
-    order, flips and noise come from :func:`epoch_generator` (seed, epoch). With m copies
-    (consistency) each step draws the m copies' noise of its batch one copy after another.
-    ``run``: progress bar, description and device (:class:`TrainRun`; checkpoint unused).
+def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, epoch: int,
+                training: NoiseTraining, run: TrainRun | None = None) -> tuple[float, float]:
+    """One epoch (0-based ``epoch``) of noise-trained SGD at ``training`` (:class:`NoiseTraining`:
+    sigma, seed, configuration) with the configuration's method; its order, flips and noise
+    come from :func:`epoch_generator` (seed, epoch). With m copies (consistency) each step
+    draws the m copies' noise of its batch one copy after another. ``run``: progress bar,
+    description and device (:class:`TrainRun`; checkpoint unused).
     Returns mean loss and accuracy on noisy frames (all copies)."""
+    sigma, seed, config = training.sigma, training.seed, training.config
     run = run or TrainRun()
     progress, description, device = run.progress, run.description, run.device
     cfg = config
