@@ -81,8 +81,10 @@ def check_switching_certificate(vehicle: VehicleParams, designs: list[Controller
         return failures
     matrices, found = _checked_matrices({v[0]: v[1] for v in matrix_of.values()}, 4, name)
     failures += found
-    failures += _corner_failures(vehicle, syn.speed_min_mps, covered, keys, matrix_of, matrices,
-                                 certificate, name)
+    stored = {key: (matrix_of[key][0], matrices[matrix_of[key][0]]) for key in keys
+              if key in matrix_of and matrix_of[key][0] in matrices}
+    failures += _corner_failures(vehicle, syn.speed_min_mps, list(zip(covered, keys, strict=True)),
+                                 stored, certificate, name)
     if certificate.method == DWELL:
         failures += _dwell_failures(matrices, certificate, name)
     return failures + _loop_failures(covered, settings, syn.speed_min_mps, certificate, name,
@@ -154,17 +156,18 @@ def _checked_matrices(rows_of: dict, size: int, name: str
     return matrices, failures
 
 
-def _corner_failures(vehicle, speed_min_mps, covered, keys, matrix_of, matrices, certificate,
+def _corner_failures(vehicle, speed_min_mps, covered: list, stored: dict, certificate,
                      name) -> list[str]:
     """The covered designs (first failing corner each) whose matrix proves less than the
-    stored decay rate."""
+    stored decay rate. ``covered``: (design, key) pairs; ``stored``: key -> (label, P) of the
+    designs with a checked matrix (the others are skipped: their failure is reported
+    elsewhere)."""
     failures = []
     wanted = certificate.decay_rate_per_s - SWITCHING_TOLERANCE
-    for d, key in zip(covered, keys, strict=True):
-        if key not in matrix_of or matrix_of[key][0] not in matrices:
+    for d, key in covered:
+        if key not in stored:
             continue
-        label = matrix_of[key][0]
-        p = matrices[label]
+        label, p = stored[key]
         for c, v in corners(d, speed_min_mps):
             m = closed_loop(vehicle, d, c, v)
             rate = certified_rate(p, m)
