@@ -22,6 +22,7 @@ from tqdm import tqdm
 from drake_cert.config import load_conditions
 from drake_cert.experiments.perception_table import (
     PRESETS,
+    CellReport,
     CellStore,
     TableSettings,
     render,
@@ -69,10 +70,10 @@ def main() -> None:
     start = time.perf_counter()
     all_rows = {}
     for preset in args.presets:
-        cells = run_preset(preset, ts, table, store, models=args.models,
-                           progress=lambda desc: lambda it: tqdm(it, desc=desc, file=sys.stderr,
-                                                                 leave=False),
-                           log=lambda msg: print(msg, file=sys.stderr, flush=True))
+        report = CellReport(
+            progress=lambda desc: lambda it: tqdm(it, desc=desc, file=sys.stderr, leave=False),
+            log=lambda msg: print(msg, file=sys.stderr, flush=True))
+        cells = run_preset(preset, ts, table, store, models=args.models, report=report)
         all_rows[preset] = rows(cells, ts)
     seconds = sum(c["seconds"] for p in args.presets for c in _cells(store, p))
     command = " ".join(["python", *sys.argv])

@@ -17,6 +17,7 @@ from drake_cert.experiments.perception_eval import (
 )
 from drake_cert.experiments.perception_table import (
     DATA_SEED,
+    CellReport,
     CellStore,
     TableSettings,
     cell_key,
@@ -34,7 +35,8 @@ TINY = TableSettings(frames=3, n0=32, n=200, calibration_n=100, conformal_per_cl
 @pytest.fixture(scope="module")
 def tiny_cells(tmp_path_factory):
     store = CellStore(tmp_path_factory.mktemp("table"))
-    cells = run_preset("carla-like", TINY, load_conditions(), store, log=lambda m: None)
+    cells = run_preset("carla-like", TINY, load_conditions(), store,
+                       report=CellReport(log=lambda m: None))
     return store, cells
 
 
@@ -71,7 +73,8 @@ def test_shared_calibration_and_clean_certificates_equal_a_cell_run_alone(tiny_c
 def test_a_rerun_reads_every_cell_back_without_computing(tiny_cells):
     store, cells = tiny_cells
     computed = []
-    again = run_preset("carla-like", TINY, load_conditions(), store, log=computed.append)
+    again = run_preset("carla-like", TINY, load_conditions(), store,
+                       report=CellReport(log=computed.append))
     assert computed == []
     assert again == cells
 
@@ -116,6 +119,7 @@ def test_a_stored_cell_made_with_other_settings_is_recomputed(tiny_cells, tmp_pa
     cell["settings"]["n"] = 10_000
     path.write_text(json.dumps(cell))
     computed = []
-    again = run_preset("carla-like", TINY, load_conditions(), copy, log=computed.append)
+    again = run_preset("carla-like", TINY, load_conditions(), copy,
+                       report=CellReport(log=computed.append))
     assert [m.split(":")[0] for m in computed] == [f"carla-like {key}"]
     assert again[key]["records"] == cells[key]["records"]

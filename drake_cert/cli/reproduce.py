@@ -208,7 +208,7 @@ def _resolved_config(args):
 def _reproduce_with_progress(config, executor, store, stop, designs, cpu) -> list[dict]:
     """The reproduction's frame rows, with one progress bar per phase."""
     from drake_cert.cli.progress import progress_bar
-    from drake_cert.experiments.reproduce import run_reproduction
+    from drake_cert.experiments.reproduce import RunReport, run_reproduction
 
     bars = []
 
@@ -221,8 +221,8 @@ def _reproduce_with_progress(config, executor, store, stop, designs, cpu) -> lis
         return bars[-1].update
 
     try:
-        return run_reproduction(config, executor, progress=progress, store=store, stop=stop,
-                                designs=designs, cpu=cpu)
+        return run_reproduction(config, executor, store=store, stop=stop, designs=designs,
+                                report=RunReport(progress=progress, cpu=cpu))
     finally:
         for b in bars:
             b.close()

@@ -144,11 +144,22 @@ class CellStore:
                           json.dumps(json_safe(cell), indent=1, allow_nan=False))
 
 
+@dataclasses.dataclass(frozen=True)
+class CellReport:
+    """How :func:`run_preset` reports: ``progress(desc)`` wraps a cell's frame iterator (a
+    bar); ``log(message)`` gets one line per computed cell."""
+
+    progress: Callable[[str], Callable[[Iterable], Iterable]] | None = None
+    log: Callable[[str], None] = print
+
+
 def run_preset(preset: str, ts: TableSettings, table: ConditionsTable, store: CellStore, *,
                models: str | Path | None = None,
-               progress: Callable[[str], Callable[[Iterable], Iterable]] | None = None,
-               log: Callable[[str], None] = print) -> dict[str, dict]:
-    """Every cell of one preset (computed, or read back from ``store``); key -> cell."""
+               report: CellReport | None = None) -> dict[str, dict]:
+    """Every cell of one preset (computed, or read back from ``store``); key -> cell.
+    ``report`` (:class:`CellReport`, default: no bars, lines printed): progress and log."""
+    report = report or CellReport()
+    progress, log = report.progress, report.log
     from drake_cert.perception.datasets import load_split
     from drake_cert.perception.models import file_sha256, load_model, model_path
 

@@ -30,6 +30,7 @@ calibrations: :mod:`drake_cert.experiments.calibrations`; the resumable store:
 
 from __future__ import annotations
 
+import dataclasses
 from collections.abc import Callable
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
@@ -380,22 +381,33 @@ def tasks_for(config: ReproduceConfig) -> list[FrameTask]:
     return [FrameTask(p, k) for k in range(config.frames) for p in config.presets]
 
 
-def run_reproduction(config: ReproduceConfig, executor=None,
-                     progress: Callable[[str, int], Callable[[int], None]] | None = None,
-                     store: RunStore | None = None,
-                     stop: Callable[[], bool] | None = None,
-                     designs: list | None = None, cpu: dict | None = None) -> list[dict]:
+@dataclasses.dataclass(frozen=True)
+class RunReport:
+    """What the caller of :func:`run_reproduction` watches: ``progress(desc, total)`` returns
+    the update callable of one phase's progress bar; ``cpu``, a dict it fills with the CPU
+    seconds its workers spent per stage."""
+
+    progress: Callable[[str, int], Callable[[int], None]] | None = None
+    cpu: dict | None = None
+
+
+def run_reproduction(config: ReproduceConfig, executor=None, store: RunStore | None = None,
+                     stop: Callable[[], bool] | None = None, designs: list | None = None,
+                     report: RunReport | None = None) -> list[dict]:
     """Every per-frame row of the reproduction, in (preset, frame, cell) order.
 
     ``designs``: the design table of the shipped vehicle, conditions and settings (synthesized
     here when not given; a caller that also draws ``traces.png`` passes the one it drew with).
-    ``progress(desc, total)`` returns the update callable of one phase's progress bar.
-    With a ``store``, finished frames and betas are read back from it and new ones written to
-    it as they arrive; once ``stop()`` is True no new frame starts and the rows of the frames
-    finished so far come back (fewer than ``frames`` per preset: the tables count them).
-    ``cpu``, when given, gets the CPU seconds its workers spent per stage
+    ``report.progress(desc, total)`` returns the update callable of one phase's progress bar
+    (:class:`RunReport`). With a ``store``, finished frames and betas are read back from it
+    and new ones written to it as they arrive; once ``stop()`` is True no new frame starts
+    and the rows of the frames finished so far come back (fewer than ``frames`` per preset:
+    the tables count them).
+    ``report.cpu``, when given, gets the CPU seconds its workers spent per stage
     (``calibration_h``, ``calibration_conformal``, ``frames``).
     """
+    report = report or RunReport()
+    progress, cpu = report.progress, report.cpu
     from drake_cert.experiments.executors import LocalExecutor, cpu_timed
     from drake_cert.synthesis.table import synthesize_table
 
