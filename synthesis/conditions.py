@@ -37,6 +37,7 @@ from drake_cert.synthesis.design import (
     MARGIN_KEYS as MARGIN_KEYS,  # the stored margins, re-exported
 )
 from drake_cert.synthesis.equilibrium import (
+    SteadyCornering,
     adaptive_steady_states,
     piecewise_constant_steady_states,
 )
@@ -240,8 +241,9 @@ def steady_state_offset_margin(vehicle: VehicleParams, k_m, interval, speed_mps:
     c_hat = 0.5 * (interval[0] + interval[1])
     grid = np.linspace(interval[0], interval[1], max(stiffness_points, 2))
     if law == GRADIENT:
-        states = adaptive_steady_states(vehicle, k_m, c_hat, grid, speed_mps,
-                                        1.0 / design_radius_m, q_ad_diag)
+        states = adaptive_steady_states(vehicle, k_m, c_hat, grid,
+                                        SteadyCornering(speed_mps, 1.0 / design_radius_m),
+                                        q_ad_diag)
     else:
         states = piecewise_constant_steady_states(vehicle, k_m, c_hat, grid, speed_mps,
                                                   1.0 / design_radius_m)

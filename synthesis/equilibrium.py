@@ -33,6 +33,14 @@ from drake_cert.synthesis.uncertainty import (
 
 
 @dataclasses.dataclass(frozen=True)
+class SteadyCornering:
+    """The steady manoeuvre an equilibrium is taken at: constant speed on a constant curve."""
+
+    speed_mps: float  # forward speed V (m/s)
+    curvature_per_m: float  # road curvature kappa (1/m, > 0 left)
+
+
+@dataclasses.dataclass(frozen=True)
 class AdaptiveSteadyState:
     """Equilibrium of plant, predictor and gradient law (units of ``s``: m, m/s, rad, rad/s)."""
 
@@ -55,22 +63,23 @@ def adaptation_lyapunov_matrix(a_m: np.ndarray, q_ad_diag) -> np.ndarray:
 
 
 def adaptive_steady_state(vehicle: VehicleParams, k_m, nominal_stiffness: float,
-                          stiffness: float, speed_mps: float, curvature_per_m: float,
+                          stiffness: float, cornering: SteadyCornering,
                           q_ad_diag) -> AdaptiveSteadyState:
     """Equilibrium of the L1 loop with the gradient law (module docstring, DESIGN 5.3c).
 
     ``k_m`` (4,) state feedback, ``nominal_stiffness`` C_hat and ``stiffness`` C per tire
-    (N/rad), ``speed_mps`` V, ``curvature_per_m`` kappa (1/m, > 0 left), ``q_ad_diag`` the
-    diagonal of Q_ad. Raises ``np.linalg.LinAlgError`` if the equilibrium is not unique.
+    (N/rad), ``cornering`` (:class:`SteadyCornering`) V (m/s) and kappa (1/m, > 0 left),
+    ``q_ad_diag`` the diagonal of Q_ad. Raises ``np.linalg.LinAlgError`` if the equilibrium
+    is not unique.
     """
-    return adaptive_steady_states(vehicle, k_m, nominal_stiffness, [stiffness], speed_mps,
-                                  curvature_per_m, q_ad_diag)[0]
+    return adaptive_steady_states(vehicle, k_m, nominal_stiffness, [stiffness], cornering,
+                                  q_ad_diag)[0]
 
 
 def adaptive_steady_states(vehicle: VehicleParams, k_m, nominal_stiffness: float, stiffnesses,
-                           speed_mps: float, curvature_per_m: float,
-                           q_ad_diag) -> list[AdaptiveSteadyState]:
+                           cornering: SteadyCornering, q_ad_diag) -> list[AdaptiveSteadyState]:
     """:func:`adaptive_steady_state` for several true stiffnesses (shares A_m, P_ad, s_hat)."""
+    speed_mps, curvature_per_m = cornering.speed_mps, cornering.curvature_per_m
     k_m = np.asarray(k_m, dtype=float).reshape(4)
     nom = nominal_model(vehicle, nominal_stiffness, speed_mps, k_m)
     psidot = yaw_rate_command(speed_mps, curvature_per_m)

@@ -206,13 +206,14 @@ def test_gradient_law_settles_at_the_synthesis_steady_state(heavy_rain_design, e
     # The simulated loop on a constant curve ends where drake_cert.synthesis.equilibrium predicts
     # (the offset the design's steady-state condition is computed from); the piecewise-constant
     # law, compensating the unmatched estimate at DC, ends on the lane centre.
-    from drake_cert.synthesis.equilibrium import adaptive_steady_state
+    from drake_cert.synthesis.equilibrium import SteadyCornering, adaptive_steady_state
 
     d = heavy_rain_design
     stiffness = d.certified_interval[end]  # far from C_hat: a visible gradient-law offset
     kappa = 1 / SETTINGS.synthesis.design_radius_m
     expected = adaptive_steady_state(CAR, d.k_m_array, d.nominal_stiffness_n_per_rad, stiffness,
-                                     d.speed_mps, kappa, SETTINGS.controller.q_ad_diag)
+                                     SteadyCornering(d.speed_mps, kappa),
+                                     SETTINGS.controller.q_ad_diag)
     kw = dict(vehicle=CAR, design=d, settings=SETTINGS, stiffness_n_per_rad=stiffness,
               friction_mu=0.9, speed_mps=d.speed_mps, road=Road((0.0,), (kappa,)))
     gradient = simulate(episode=EpisodeOptions(plant="linear", law="gradient", t_final_s=40.0),

@@ -10,7 +10,7 @@ from drake_cert.config import GRAVITY_MPS2, load_conditions, load_settings, load
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.synthesis import conditions as cond
 from drake_cert.synthesis.design import VEHICLE_LIMIT_KEYS
-from drake_cert.synthesis.equilibrium import adaptive_steady_state
+from drake_cert.synthesis.equilibrium import SteadyCornering, adaptive_steady_state
 from drake_cert.synthesis.speed import (
     L1_MARGIN_MIN,
     SPEED_RESOLUTION_MPS,
@@ -194,7 +194,8 @@ def _lqr_gain(vehicle, c_hat, speed):
 def test_adaptive_equilibrium_is_an_equilibrium_of_plant_predictor_and_gradient_law():
     vehicle = load_vehicle()
     k_m, c_hat, c, v, kappa = _lqr_gain(vehicle, 50e3, 20.0), 50e3, 22e3, 20.0, 1.0 / 50.0
-    eq = adaptive_steady_state(vehicle, k_m, c_hat, c, v, kappa, [10.0, 1.0, 10.0, 1.0])
+    eq = adaptive_steady_state(vehicle, k_m, c_hat, c, SteadyCornering(v, kappa),
+                               [10.0, 1.0, 10.0, 1.0])
     a, b, g = lateral_error_dynamics(vehicle, c, v)
     u = -k_m @ eq.state + eq.adaptive_input_rad + eq.feedforward_input_rad
     assert np.allclose(a @ eq.state + b * u + g * v * kappa, 0.0, atol=1e-10)
@@ -212,7 +213,8 @@ def test_weighting_position_errors_in_q_ad_shrinks_the_offset_as_design_reports(
     (diag(10, 1, 10, 1)); our LQR weights differ, so only sign and ordering are checked."""
     vehicle = load_vehicle()
     k_m = _lqr_gain(vehicle, 50e3, 20.0)
-    offsets = [adaptive_steady_state(vehicle, k_m, 50e3, 22e3, 20.0, 1.0 / 50.0, q)
+    offsets = [adaptive_steady_state(vehicle, k_m, 50e3, 22e3,
+                                     SteadyCornering(20.0, 1.0 / 50.0), q)
                .lateral_offset_m for q in ([1.0] * 4, [10.0, 1.0, 10.0, 1.0])]
     assert offsets[0] < offsets[1] < 0.0
     assert offsets[1] > 0.5 * offsets[0] and offsets[0] > -vehicle.lane_margin_m
