@@ -130,6 +130,8 @@ def refuse_empty_values(parser: argparse.ArgumentParser, args: argparse.Namespac
         if not action.option_strings:
             continue
         value = getattr(args, action.dest, None)
+        if value == action.default:  # left out (an option whose default is empty text)
+            continue
         values = value if isinstance(value, list) else [value]
         if any(isinstance(v, str) and not v.strip() for v in values):
             from drake_cert.errors import ConfigError
