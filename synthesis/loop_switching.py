@@ -133,3 +133,41 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
         chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
     return None
+
+
+def dropout_jump(reference: np.ndarray, sample_period_s: float) -> np.ndarray:
+    """The jump ``z+ = J z-`` (5 x 5) of a design switch on the L1 loop ``z = [s, u_ad]``
+    whose reference matrix at the (C, V) in force is ``reference`` (docs/design.md 5.6 (b)).
+
+    At a switch the piecewise-constant law restarts its predictor at the measured state, so
+    for one sample period T_s the filter ``u_ad' = -k w (u_ad - u*)``, ``u* = -q' s / w``,
+    runs without its input: at the period's end ``u_ad`` lacks ``(1 - e^{-k w T_s}) u*`` of
+    what the reference loop (the ideal estimate) would hold, with s frozen over the period
+    (1 ms against time constants above 0.1 s). So ``J = I + (1 - e^{-k w T_s}) e_5 [q'/w, 0]``,
+    read off the reference matrix's filter row ``[-k q', -k w]``.
+    """
+    kw = -float(reference[4, 4])
+    jump = np.eye(5)
+    jump[4, :4] += (1.0 - np.exp(-kw * sample_period_s)) * reference[4, :4] / reference[4, 4]
+    return jump
+
+
+def loop_jump_factor(vehicle: VehicleParams, designs: list[ControllerDesign],
+                     speed_min_mps: float, law: str, p: np.ndarray,
+                     sample_period_s: float, offset: float = 0.0) -> float:
+    """``mu_z``: the largest factor by which one switch's dropout (:func:`dropout_jump`) can
+    multiply ``z' P_z z``, the largest generalized eigenvalue of ``(J' P_z J, P_z)`` over both
+    ends of every design's certified interval and the speeds of :func:`loop_speeds` (at least
+    1). With the loops decaying at ``lambda_z`` between switches, an average dwell above
+    ``ln(mu_z) / (2 lambda_z)`` keeps them stable (Hespanha and Morse; docs/design.md 5.6 (b))."""
+    import scipy.linalg
+
+    worst = 1.0
+    for d in designs:
+        if not d.has_safe_speed:
+            continue
+        for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=offset):
+            jump = dropout_jump(m, sample_period_s)
+            worst = max(worst, float(scipy.linalg.eigh(jump.T @ p @ jump, p,
+                                                       eigvals_only=True).max()))
+    return worst

@@ -252,4 +252,28 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                     return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
                             f"{certificate.loop_decay_rate_per_s}/s for design {key} at "
                             f"C = {c:.6g} N/rad, V = {v:.4g} m/s"]
+                if isinstance(settings, Settings):
+                    failure = _dropout_failure(p, m, settings, certificate, name, key, c, v)
+                    if failure:
+                        return [failure]
+    need = (math.log(certificate.loop_jump_factor) / (2.0 * certificate.loop_decay_rate_per_s)
+            if certificate.loop_jump_factor > 1.0 else 0.0)
+    if certificate.loop_dwell_time_s < need * (1.0 - 1e-9):
+        return [f"{name}: loop_dwell_time_s = {certificate.loop_dwell_time_s} s is below "
+                f"ln(mu_z) / (2 lambda_z) = {need:.6g} s"]
     return []
+
+
+def _dropout_failure(p, m, settings, certificate, name, key, c, v) -> str:
+    """A failure when one switch's estimate dropout (the jump of
+    :func:`drake_cert.synthesis.loop_switching.dropout_jump` at this reference matrix) can
+    multiply ``z' P_z z`` by more than the stored ``loop_jump_factor``; else ''."""
+    from drake_cert.synthesis.loop_switching import dropout_jump
+
+    jump = dropout_jump(m, settings.controller.sample_period_s)
+    mu = float(scipy.linalg.eigh(jump.T @ p @ jump, p, eigvals_only=True).max())
+    if mu > certificate.loop_jump_factor * (1.0 + 1e-6):
+        return (f"{name}: a switch's estimate dropout multiplies the loop Lyapunov function by "
+                f"{mu:.6g} > the stored loop_jump_factor {certificate.loop_jump_factor} for "
+                f"design {key} at C = {c:.6g} N/rad, V = {v:.4g} m/s")
+    return ""

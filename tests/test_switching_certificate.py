@@ -308,6 +308,58 @@ def test_verify_rejects_a_loop_rate_claimed_without_its_matrix(rtk_file, tmp_pat
     _verify_fails(_edited(rtk_file, tmp_path, drop), capsys, "stores no loop matrix")
 
 
+def test_a_switchs_estimate_dropout_is_bounded_by_the_stored_jump_factor(certified):
+    """At a switch the piecewise-constant law restarts its predictor: for one sample the
+    filter runs without its input. Against the ideal estimate that is the jump
+    z+ = J z-; ``z' P_z z`` grows by at most the stored mu_z, and the L1 loops need an average
+    dwell of ln(mu_z) / (2 lambda_z) (docs/design.md 5.6 (b))."""
+    from drake_cert.synthesis.loop_switching import dropout_jump, loop_matrices
+
+    t_s = certified.settings.controller.sample_period_s
+    rng = np.random.default_rng(0)
+    for c in certified.switching:
+        p = np.array(c.loop_lyapunov_matrix)
+        assert 1.0 < c.loop_jump_factor < 1.2
+        assert c.loop_dwell_time_s == pytest.approx(
+            math.log(c.loop_jump_factor) / (2 * c.loop_decay_rate_per_s), rel=1e-4)
+        for d in _family(certified, c.family)[:3]:
+            for m in loop_matrices(certified.vehicle, d, _speed_min(certified), c.loop_law,
+                                   offset=0.25):
+                jump = dropout_jump(m, t_s)
+                # the filter alone over one period, s frozen: the reference loop moves u_ad
+                # toward u* = -q's / w, the running loop (no input) only decays
+                kw = -m[4, 4]
+                for z in rng.normal(size=(4, 5)):
+                    u_star = -(m[4, :4] @ z[:4]) / m[4, 4]
+                    reference = np.exp(-kw * t_s) * z[4] + (1 - np.exp(-kw * t_s)) * u_star
+                    running = np.exp(-kw * t_s) * z[4]
+                    after = np.append(z[:4], reference)
+                    assert (jump @ after)[4] == pytest.approx(running, rel=1e-9, abs=1e-12)
+                    assert after @ jump.T @ p @ jump @ after <= \
+                        c.loop_jump_factor * (after @ p @ after) * (1 + 1e-6)
+
+
+def test_a_drive_that_switches_faster_than_the_l1_loops_dwell_says_so(certified):
+    cert = _certificate(certified, "robotcar-like")
+    slow = switching.drive_switching_report(cert, [3.0, 6.5, 10.0])
+    assert slow["switching_certificate_met"] is True and "switching_note" not in slow
+    fast = [10.0 + 0.1 * i for i in range(8)]
+    report = switching.drive_switching_report(cert, fast)
+    assert report["switching_certificate_met"] is False
+    assert "average dwell" in report["switching_note"]
+    n0 = switching.chatter_bound(fast, 2 * cert.loop_dwell_time_s)
+    assert report["loop_chatter_bound_n0"] == n0 > 1
+    assert report["loop_growth_bound"] == pytest.approx(cert.loop_jump_factor ** n0)
+
+
+def test_verify_rejects_an_understated_loop_jump_factor(rtk_file, tmp_path, capsys):
+    def understate(certs, raw):
+        certs["rtk-like"]["loop_jump_factor"] = 1.0
+        certs["rtk-like"]["loop_dwell_time_s"] = 0.0
+
+    _verify_fails(_edited(rtk_file, tmp_path, understate), capsys, "estimate dropout")
+
+
 def test_a_drive_that_switches_l1_loops_without_a_common_matrix_is_not_reported_certified(
         certified):
     from drake_cert.cli.synthesize import format_switching
