@@ -2,6 +2,9 @@
 
 import subprocess
 import sys
+from pathlib import Path
+
+import pytest
 
 from drake_cert import cli
 
@@ -36,11 +39,20 @@ def test_help_speaks_to_a_user_not_a_developer(capsys):
     assert "``" not in out  # no reStructuredText from a module docstring
     assert "Certified robust perception-based lateral control" in out
     # the three-command workflow, each command as a user types it
-    for line in ("drake-cert synthesize --vehicle my_car.yaml --out designs.yaml",
-                 "drake-cert verify designs.yaml --vehicle my_car.yaml",
-                 "drake-cert drive --scenario dry_to_snow --compare --attack sa --designs "
-                 "designs.yaml"):
+    for line in cli.YOUR_VEHICLE_COMMANDS:
         assert line in out
+
+
+@pytest.mark.parametrize("document", ["README.md", "docs/usage.md"])
+def test_the_three_vehicle_commands_are_the_same_everywhere(document):
+    """One version: the block under "Your vehicle in three commands" is the help's, word for
+    word (comments aside)."""
+    text = (Path(__file__).resolve().parents[1] / document).read_text()
+    block = text[text.index("## Your vehicle in three commands"):]
+    block = block[block.index("```bash\n") + 8:]
+    block = block[:block.index("```")]
+    commands = tuple(line.split("#")[0].strip() for line in block.strip().splitlines())
+    assert commands == cli.YOUR_VEHICLE_COMMANDS
 
 
 def test_progress_off_a_terminal_is_ascii_lines_at_most_a_minute_apart(capsys):

@@ -20,14 +20,19 @@ from drake_cert.errors import DrakeCertError
 DESCRIPTION = ("Certified robust perception-based lateral control: synthesize and verify\n"
                "controller designs, certify perception models, and drive the certified\n"
                "closed loop in Drake.")
-EPILOG = """\
-Your vehicle in three commands:
-  drake-cert synthesize --vehicle my_car.yaml --out designs.yaml
-  drake-cert verify designs.yaml --vehicle my_car.yaml
-  drake-cert drive --scenario dry_to_snow --compare --attack sa --designs designs.yaml
+YOUR_VEHICLE_COMMANDS = (
+    "drake-cert synthesize --vehicle my_car.yaml --out my_designs.yaml",
+    "drake-cert verify my_designs.yaml --vehicle my_car.yaml",
+    "drake-cert drive --scenario dry_to_snow --compare --attack sa --designs my_designs.yaml "
+    "--vehicle my_car.yaml",
+)
+"""The three-command workflow, the one version the help, the README and docs/usage.md show
+(``tests/test_cli.py`` checks the two documents)."""
 
+EPILOG = ("Your vehicle in three commands:\n" + "".join(f"  {c}\n" for c in YOUR_VEHICLE_COMMANDS)
+          + """
 `drake-cert COMMAND --help` for each command; docs/usage.md for files and units. Mistakes get
-one line and exit code 2."""
+one line and exit code 2.""")
 
 COMMANDS = {
     "synthesize": "synthesize the design table (gains, filter gain, safe speed) for a vehicle",
