@@ -459,18 +459,23 @@ def test_a_bad_file_is_answered_before_pydrake_cvxpy_or_torch_are_imported(tmp_p
     binary = tmp_path / "binary.yaml"
     binary.write_bytes(b"\xff\xfe\x00")
     tonnes = _vehicle_with(tmp_path, "mass_kg: 1573.0", "mass_kg: 1.573")
+    shipped = (ROOT / "drake_cert/data/scenarios/dry_to_snow.yaml").read_text()
     huge = tmp_path / "huge.yaml"
-    huge.write_text((ROOT / "drake_cert/data/scenarios/dry_to_snow.yaml").read_text()
-                    .replace("frame_size: 64 ", "frame_size: 100000 "))
+    huge.write_text(shipped.replace("frame_size: 64 ", "frame_size: 100000 "))
+    motion = tmp_path / "motion.yaml"  # a motion key, then a controller key, out of range
+    motion.write_text(shipped.replace("max_accel_mps2: 2.0 ", "max_accel_mps2: -2.0 "))
+    controller = tmp_path / "controller.yaml"
+    controller.write_text(shipped.replace("law: piecewise_constant ", "law: gradient_descent "))
+    assert huge.read_text() != shipped != motion.read_text() != controller.read_text()
     light = [["synthesize", "--vehicle", tonnes], ["synthesize", "--vehicle", str(binary)],
              ["drive", "--vehicle", tonnes],
              ["simulate", "--designs", designs_file, "--stiffness", "100"],
              ["certify", "--preset", "rtk-like", "--sigma", "0.25", "--size", "100000"],
              ["generate", "--preset", "rtk-like", "--out", "x.png", "--size", "100000"]]
-    out = _fresh_python(CONFIG_ERROR_IMPORTS.format(light=light, scenario=[
-        ["drive", "--scenario", str(huge)]]))
+    scenarios = [["drive", "--scenario", str(path)] for path in (huge, motion, controller)]
+    out = _fresh_python(CONFIG_ERROR_IMPORTS.format(light=light, scenario=scenarios))
     lines = out.stdout.splitlines()
     assert out.returncode == 0, out.stderr
     assert lines[:len(light)] == [f"LIGHT {argv[0]} []" for argv in light], out.stdout
     # a scenario's schema holds Drake's SimulatorConfig: pydrake, but neither cvxpy nor torch
-    assert lines[len(light):] == ["SCENARIO drive ['pydrake']"], out.stdout
+    assert lines[len(light):] == ["SCENARIO drive ['pydrake']"] * 3, out.stdout
