@@ -564,7 +564,7 @@ def _evaluated_model(model, scenario: Scenario, conditions: ConditionsTable, sig
 
 
 @dataclasses.dataclass
-class _DriveParts:
+class _PreparedDrive:
     """What the builder's steps share: the checked scenario and the objects built from it."""
 
     scenario: Scenario
@@ -604,29 +604,31 @@ def build_certified_driving_diagram(scenario: Scenario, *, vehicle: VehicleParam
     the calibration frames (a progress bar).
     """
     options = options or BuildOptions()
-    parts = _prepare_drive(scenario, vehicle, settings, conditions, designs,
+    prepared = _prepare_drive(scenario, vehicle, settings, conditions, designs,
                            options.calibration_progress)
-    b = DiagramBuilder()
+    builder = DiagramBuilder()
     # added in the order motion, perception, control: the order their events were always in
-    systems_ = {**_add_motion(b, parts), **_add_perception(b, parts), **_add_control(b, parts)}
-    _connect(b, systems_, preview=settings.controller.preview_window_s > 0)
-    loggers, tick_loggers = _add_loggers(b, systems_, options.tape_period_s, parts.period_s)
-    diagram = b.Build()
-    diagram.set_name(f"certified_driving_{parts.scenario.perception.pipeline}")
-    switching = preset_switching_certificate(vehicle, parts.table, settings,
-                                             parts.scenario.perception.preset)
-    return DrivingDiagram(diagram, parts.scenario, parts.route, parts.table, systems_, loggers,
-                          tick_loggers, parts.initial_speed_mps, vehicle, parts.seed_source,
+    blocks = {**_add_motion(builder, prepared), **_add_perception(builder, prepared),
+              **_add_control(builder, prepared)}
+    _connect(builder, blocks, preview=settings.controller.preview_window_s > 0)
+    loggers, tick_loggers = _add_loggers(builder, blocks, options.tape_period_s, prepared.period_s)
+    diagram = builder.Build()
+    diagram.set_name(f"certified_driving_{prepared.scenario.perception.pipeline}")
+    switching = preset_switching_certificate(vehicle, prepared.table, settings,
+                                             prepared.scenario.perception.preset)
+    return DrivingDiagram(diagram, prepared.scenario, prepared.route, prepared.table, blocks,
+                          loggers, tick_loggers, prepared.initial_speed_mps, vehicle,
+                          prepared.seed_source,
                           switching=switching, lead_in_m=float(scenario.camera.look_ahead_m),
-                          guarantee={**guarantee_summary(parts.scenario, parts.table,
-                                                         parts.conformal),
-                                     "warnings": _calibration_warnings(parts.scenario,
-                                                                       parts.regression_beta)})
+                          guarantee={**guarantee_summary(prepared.scenario, prepared.table,
+                                                         prepared.conformal),
+                                     "warnings": _calibration_warnings(prepared.scenario,
+                                                                       prepared.regression_beta)})
 
 
 def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Settings,
                    conditions: ConditionsTable, designs: list[ControllerDesign],
-                   calibration_progress: Callable | None) -> _DriveParts:
+                   calibration_progress: Callable | None) -> _PreparedDrive:
     """Check the scenario against the table, build the route and load and calibrate the model."""
     from drake_cert.certification.sampler import with_precision
     from drake_cert.perception.models import load_model
@@ -659,7 +661,7 @@ def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Setting
         if certified and p.task == "regress" else math.inf
     conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress) \
         if certified and p.task == "classify" and p.interval == "conformal" else None
-    return _DriveParts(
+    return _PreparedDrive(
         scenario=scenario, vehicle=vehicle, settings=settings, tires=tires, table=table,
         envelope=envelope, route=route, model=model, evaluated=evaluated, sigma=sigma,
         labels=list(conditions.preset(p.preset).labels), period_s=1.0 / scenario.camera.rate_hz,
@@ -667,107 +669,109 @@ def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Setting
         regression_beta=beta, conformal=conformal, seed_source=seed_source)
 
 
-def _add_perception(b: DiagramBuilder, parts: _DriveParts) -> dict:
+def _add_perception(builder: DiagramBuilder, prepared: _PreparedDrive) -> dict:
     """Camera, attacker, perception smoothing and certified interval (DESIGN 6.1)."""
-    scenario, tires, table = parts.scenario, parts.tires, parts.table
+    scenario, tires, table = prepared.scenario, prepared.tires, prepared.table
     p, cam, att = scenario.perception, scenario.camera, scenario.attack
-    add = b.AddNamedSystem
-    camera = add("camera", CameraSource(parts.route, tires, p.preset, cam, seed=scenario.seed))
+    add = builder.AddNamedSystem
+    camera = add("camera", CameraSource(prepared.route, tires, p.preset, cam, seed=scenario.seed))
     # The attacker attacks the pipeline's own model: SmoothAdv on g at perception.sigma
     # (certified), PGD on f without noise (base), whatever the scenario's attack.target.
     attacker = add("attacker", Attacker(
-        dataclasses.replace(att, target="smoothed" if parts.certified else "base"), p, cam,
-        model=parts.model, seed=scenario.seed))
+        dataclasses.replace(att, target="smoothed" if prepared.certified else "base"), p, cam,
+        model=prepared.model, seed=scenario.seed))
     perception = add("perception_smoothing", PerceptionSmoothing(
-        parts.evaluated, p, cam, seed=scenario.seed, inputs=PerceptionInputs(
-            label_names=parts.labels, ranges=candidate_ranges(tires, p.preset, parts.labels),
-            alpha_spending=alpha_spending(scenario, table), conformal=parts.conformal)))
+        prepared.evaluated, p, cam, seed=scenario.seed, inputs=PerceptionInputs(
+            label_names=prepared.labels, ranges=candidate_ranges(tires, p.preset, prepared.labels),
+            alpha_spending=alpha_spending(scenario, table), conformal=prepared.conformal)))
     interval = add("certified_interval", CertifiedInterval(
         table, tires, p, scenario.controller, cam, IntervalInputs(
-            regression_beta=parts.regression_beta, conformal=parts.conformal,
-            stiffness_scale=parts.vehicle.tire_stiffness_scale, label_names=parts.labels)))
+            regression_beta=prepared.regression_beta, conformal=prepared.conformal,
+            stiffness_scale=prepared.vehicle.tire_stiffness_scale, label_names=prepared.labels)))
     return dict(camera=camera, attacker=attacker, perception=perception, interval=interval)
 
 
-def _add_motion(b: DiagramBuilder, parts: _DriveParts) -> dict:
+def _add_motion(builder: DiagramBuilder, prepared: _PreparedDrive) -> dict:
     """Longitudinal motion and the route's road (DESIGN 6.1, 6.3)."""
-    scenario, table, tires = parts.scenario, parts.table, parts.tires
-    p, cam, ctl = scenario.perception, scenario.camera, parts.settings.controller
-    add = b.AddNamedSystem
+    scenario, table, tires = prepared.scenario, prepared.table, prepared.tires
+    p, cam, ctl = scenario.perception, scenario.camera, prepared.settings.controller
+    add = builder.AddNamedSystem
     motion = add("longitudinal_motion", LongitudinalMotion(
         # the scenario's initial speed 0 means the envelope design's speed
-        dataclasses.replace(scenario.motion, initial_speed_mps=parts.initial_speed_mps), cam,
+        dataclasses.replace(scenario.motion, initial_speed_mps=prepared.initial_speed_mps), cam,
         designs=ProfileDesigns(
             join=join_design_indices(table, tires, p.preset), design_speeds_mps=_speeds(table),
             frontier_speed_mps=slowest_command_mps(table, scenario.motion.stop_speed_mps),
             # the certified pipeline combines its certified decisions over the shortest
             # stretch of one condition; the base pipeline's raw predictions each stand alone
-            spans=design_label_spans(table, tires, p.preset) if parts.certified else None,
-            window_m=scenario.min_condition_length_m if parts.certified else 0.0,
+            spans=design_label_spans(table, tires, p.preset) if prepared.certified else None,
+            window_m=scenario.min_condition_length_m if prepared.certified else 0.0,
             tolerance=scenario.tolerated_wrong_frames, looks_per_side=scenario.looks_per_side,
-            envelope_index=parts.envelope),
-        initial_design_index=parts.envelope, initial_arc_length_m=-cam.look_ahead_m))
-    road = add("route", RouteSource(parts.route, preview_ahead_s=ctl.preview_ahead_s,
+            envelope_index=prepared.envelope),
+        initial_design_index=prepared.envelope, initial_arc_length_m=-cam.look_ahead_m))
+    road = add("route", RouteSource(prepared.route, preview_ahead_s=ctl.preview_ahead_s,
                                     preview_window_s=ctl.preview_window_s))
     return dict(motion=motion, route=road)
 
 
-def _add_control(b: DiagramBuilder, parts: _DriveParts) -> dict:
+def _add_control(builder: DiagramBuilder, prepared: _PreparedDrive) -> dict:
     """The switching L1 controller, the steering Saturation and the Fiala plant (DESIGN 6.1)."""
-    scenario, ctl, add = parts.scenario, parts.settings.controller, b.AddNamedSystem
+    scenario, ctl, add = prepared.scenario, prepared.settings.controller, builder.AddNamedSystem
     controller = add("switching_l1_controller", SwitchingL1Controller(
-        vehicle=parts.vehicle, designs=parts.table, settings=parts.settings,
+        vehicle=prepared.vehicle, designs=prepared.table, settings=prepared.settings,
         options=SwitchingOptions(
-            law=scenario.controller.law, initial_design_index=parts.envelope,
-            initial_speed_mps=parts.initial_speed_mps,
+            law=scenario.controller.law, initial_design_index=prepared.envelope,
+            initial_speed_mps=prepared.initial_speed_mps,
             curvature_preview=ctl.preview_window_s > 0)))
-    limit = parts.vehicle.steering_limit_rad
+    limit = prepared.vehicle.steering_limit_rad
     saturation = add("steering_saturation", Saturation([-limit], [limit]))
-    plant = add("plant", NonlinearLateralPlant(parts.vehicle,
+    plant = add("plant", NonlinearLateralPlant(prepared.vehicle,
                                                stop_speed_mps=scenario.motion.stop_speed_mps))
     return dict(controller=controller, saturation=saturation, plant=plant)
 
 
-def _connect(b: DiagramBuilder, s: dict, preview: bool) -> None:
+def _connect(builder: DiagramBuilder, blocks: dict, preview: bool) -> None:
     """The Diagram's wiring (DESIGN 6.1), in one fixed order."""
-    motion, road, camera, plant = s["motion"], s["route"], s["camera"], s["plant"]
-    controller, interval, perception = s["controller"], s["interval"], s["perception"]
-    b.Connect(motion.GetOutputPort("arc_length_m"), road.GetInputPort("arc_length_m"))
-    b.Connect(motion.GetOutputPort("arc_length_m"), camera.GetInputPort("arc_length_m"))
-    b.Connect(camera.GetOutputPort("frame"), s["attacker"].GetInputPort("frame"))
-    b.Connect(s["attacker"].GetOutputPort("frame"), perception.GetInputPort("frame"))
-    b.Connect(perception.GetOutputPort("perception"), interval.GetInputPort("perception"))
-    b.Connect(interval.GetOutputPort("decision"), motion.GetInputPort("decision"))
-    b.Connect(plant.GetOutputPort("state"), controller.GetInputPort("state"))
-    b.Connect(road.GetOutputPort("curvature_per_m"), controller.GetInputPort("curvature_per_m"))
+    motion, road, camera = blocks["motion"], blocks["route"], blocks["camera"]
+    plant, controller = blocks["plant"], blocks["controller"]
+    interval, perception = blocks["interval"], blocks["perception"]
+    builder.Connect(motion.GetOutputPort("arc_length_m"), road.GetInputPort("arc_length_m"))
+    builder.Connect(motion.GetOutputPort("arc_length_m"), camera.GetInputPort("arc_length_m"))
+    builder.Connect(camera.GetOutputPort("frame"), blocks["attacker"].GetInputPort("frame"))
+    builder.Connect(blocks["attacker"].GetOutputPort("frame"), perception.GetInputPort("frame"))
+    builder.Connect(perception.GetOutputPort("perception"), interval.GetInputPort("perception"))
+    builder.Connect(interval.GetOutputPort("decision"), motion.GetInputPort("decision"))
+    builder.Connect(plant.GetOutputPort("state"), controller.GetInputPort("state"))
+    builder.Connect(road.GetOutputPort("curvature_per_m"),
+                    controller.GetInputPort("curvature_per_m"))
     if preview:
-        b.Connect(motion.GetOutputPort("speed_mps"), road.GetInputPort("speed_mps"))
-        b.Connect(road.GetOutputPort("curvature_preview_per_m"),
+        builder.Connect(motion.GetOutputPort("speed_mps"), road.GetInputPort("speed_mps"))
+        builder.Connect(road.GetOutputPort("curvature_preview_per_m"),
                   controller.GetInputPort("curvature_preview_per_m"))
-    b.Connect(motion.GetOutputPort("speed_mps"), controller.GetInputPort("speed_mps"))
-    b.Connect(motion.GetOutputPort("design_index"), controller.GetInputPort("design_index"))
-    b.Connect(controller.GetOutputPort("steering_rad"), s["saturation"].get_input_port())
-    b.Connect(s["saturation"].get_output_port(), plant.GetInputPort("steering_rad"))
+    builder.Connect(motion.GetOutputPort("speed_mps"), controller.GetInputPort("speed_mps"))
+    builder.Connect(motion.GetOutputPort("design_index"), controller.GetInputPort("design_index"))
+    builder.Connect(controller.GetOutputPort("steering_rad"), blocks["saturation"].get_input_port())
+    builder.Connect(blocks["saturation"].get_output_port(), plant.GetInputPort("steering_rad"))
     for port in ("stiffness_n_per_rad", "friction_mu", "curvature_per_m"):
-        b.Connect(road.GetOutputPort(port), plant.GetInputPort(port))
-    b.Connect(motion.GetOutputPort("speed_mps"), plant.GetInputPort("speed_mps"))
+        builder.Connect(road.GetOutputPort(port), plant.GetInputPort(port))
+    builder.Connect(motion.GetOutputPort("speed_mps"), plant.GetInputPort("speed_mps"))
 
 
-def _add_loggers(b: DiagramBuilder, s: dict, tape_period_s: float,
+def _add_loggers(builder: DiagramBuilder, blocks: dict, tape_period_s: float,
                  period_s: float) -> tuple[dict, dict]:
     """The tape's loggers (every ``tape_period_s``) and the camera-period loggers."""
     def log(port, every=tape_period_s):
-        return LogVectorOutput(port, b, every)
+        return LogVectorOutput(port, builder, every)
 
-    motion, road, interval = s["motion"], s["route"], s["interval"]
+    motion, road, interval = blocks["motion"], blocks["route"], blocks["interval"]
     loggers = {
-        "state": log(s["plant"].GetOutputPort("state")),
-        "steering": log(s["saturation"].get_output_port()),
+        "state": log(blocks["plant"].GetOutputPort("state")),
+        "steering": log(blocks["saturation"].get_output_port()),
         "speed": log(motion.GetOutputPort("speed_mps")),
         "arc_length": log(motion.GetOutputPort("arc_length_m")),
         "curvature": log(road.GetOutputPort("curvature_per_m")),
         "true_stiffness": log(road.GetOutputPort("stiffness_n_per_rad")),
-        "design": log(s["controller"].GetOutputPort("active_design_index")),
+        "design": log(blocks["controller"].GetOutputPort("active_design_index")),
         "interval": log(interval.GetOutputPort("interval_n_per_rad")),
         "speed_command": log(interval.GetOutputPort("speed_command_mps")),
         "radius": log(interval.GetOutputPort("certified_radius")),
@@ -777,10 +781,10 @@ def _add_loggers(b: DiagramBuilder, s: dict, tape_period_s: float,
     # decision of tick k-1 and the truth of the frame it came from.
     tick_loggers = {
         "interval": log(interval.GetOutputPort("interval_n_per_rad"), period_s),
-        "seen_stiffness": log(s["camera"].GetOutputPort("seen_stiffness_n_per_rad"), period_s),
+        "seen_stiffness": log(blocks["camera"].GetOutputPort("seen_stiffness_n_per_rad"), period_s),
         "status": log(interval.GetOutputPort("status"), period_s),
         "design": log(interval.GetOutputPort("design_index"), period_s),
-        "samples": log(s["perception"].GetOutputPort("samples"), period_s),
+        "samples": log(blocks["perception"].GetOutputPort("samples"), period_s),
         "requested": log(interval.GetOutputPort("requested_design_index"), period_s),
     }
     return loggers, tick_loggers
@@ -972,14 +976,14 @@ def _tapes(built: DrivingDiagram, context) -> tuple[DriveTape, TickLog]:
     ticks_raw = {k: _read(v, context) for k, v in built.tick_loggers.items()}
     m = min(len(t) for t, _ in ticks_raw.values())
     seen = ticks_raw["seen_stiffness"][1][:m, 0]
-    keep = np.isfinite(seen)  # the first sample precedes any frame
-    ticks = TickLog(times_s=ticks_raw["interval"][0][:m][keep],
-                    interval_n_per_rad=ticks_raw["interval"][1][:m][keep],
-                    seen_stiffness_n_per_rad=seen[keep],
-                    status=ticks_raw["status"][1][:m, 0][keep].astype(int),
-                    design_index=ticks_raw["design"][1][:m, 0][keep].astype(int),
-                    samples=ticks_raw["samples"][1][:m, 0][keep].astype(int),
-                    requested_design_index=ticks_raw["requested"][1][:m, 0][keep].astype(int))
+    framed = np.isfinite(seen)  # ticks after a frame (the first sample precedes any)
+    ticks = TickLog(times_s=ticks_raw["interval"][0][:m][framed],
+                    interval_n_per_rad=ticks_raw["interval"][1][:m][framed],
+                    seen_stiffness_n_per_rad=seen[framed],
+                    status=ticks_raw["status"][1][:m, 0][framed].astype(int),
+                    design_index=ticks_raw["design"][1][:m, 0][framed].astype(int),
+                    samples=ticks_raw["samples"][1][:m, 0][framed].astype(int),
+                    requested_design_index=ticks_raw["requested"][1][:m, 0][framed].astype(int))
     return tape, ticks
 
 

@@ -1,5 +1,10 @@
 """The L1 adaptive lateral controller as a Drake system (DESIGN section 4).
 
+Role: one design's controller, fast (symbolic systems evaluated in C++). Where to start:
+``l1_law`` holds the equations (read it first); ``l1_reference`` runs them in Python for one
+design (the readable reference); ``l1_controller`` is the same law as fast Drake systems for one
+design; ``switching_controller`` is what the car runs (designs switched at run time).
+
 Input ports:  ``state`` s = [e1, e1dot, e2, e2dot] (m, m/s, rad, rad/s),
               ``curvature_per_m`` road curvature kappa (1/m, > 0 left).
 Output port:  ``steering_rad`` the command u = -k_m s + u_ad + u_ff (rad), UNSATURATED:

@@ -1,5 +1,10 @@
 """Equations of the L1 adaptive lateral controller (DESIGN section 4; paper section IV-B).
 
+Role: the law itself, as functions. Where to start: ``l1_law`` holds the equations (read it
+first); ``l1_reference`` runs them in Python for one design (the readable reference);
+``l1_controller`` is the same law as fast Drake systems for one design; ``switching_controller``
+is what the car runs (designs switched at run time).
+
 Every function here works on floats and on ``pydrake.symbolic`` expressions: called with
 numbers it is the readable reference, called with symbolic variables it builds the
 C++-evaluated systems of :mod:`drake_cert.systems.l1_controller`. Symbols follow the paper:

@@ -1,5 +1,10 @@
 """A readable Python ``LeafSystem`` running the L1 equations of :mod:`drake_cert.systems.l1_law`.
 
+Role: the reference implementation the fast one is tested against. Where to start: ``l1_law``
+holds the equations (read it first); ``l1_reference`` runs them in Python for one design (the
+readable reference); ``l1_controller`` is the same law as fast Drake systems for one design;
+``switching_controller`` is what the car runs (designs switched at run time).
+
 Same ports and the same numbers as :class:`drake_cert.systems.l1_controller.L1AdaptiveController`,
 with the equations evaluated in Python (about 20 us per evaluation, so ~10x slower): it is the
 reference the C++-evaluated controller is tested against, and the place to read the law.

@@ -238,22 +238,13 @@ class SmoothedClassifier(SmoothedModel):
           ``options.selection_seed`` (an independent stream; ties to the least-friction
           label); or None: {a} alone.
 
-        Estimation samples are examined at looks fixed in advance (:func:`look_plan`:
-        Clopper-Pearson bounds at geometric looks with alpha split over the looks, or a
-        beta-mixture confidence sequence). At each look a range T of k labels gets
-        ``R_T = max(max_a sigma/2 (PhiInv(L_a) + PhiInv(L_T)), sigma (PhiInv(L_T) -
-        PhiInv(k/(k+1))))`` over its tested labels a (:func:`sequential_radius`) from lower
-        bounds on a's probability and on T's mass.
-        Alpha is split over the m tested quantities (labels and multi-label masses) and the
-        looks, so every bound holds at every look at once with probability at least
-        ``1 - alpha``, and stopping at any look keeps the guarantee (re-checking a fixed-n
-        bound after each batch would not): with probability at least ``1 - alpha`` over the
-        noise, the exact smoothed label ``g(z)`` lies in the returned T for every z with
-        ``||z - x||_2 < radius`` (radius > eps). It stops when the most preferred candidate
-        not yet ruled out is certified (returned), when every candidate is ruled out
-        (futility: even with the probabilities at their upper bounds the last look would not
-        certify it; it costs no soundness, only an abstention), or at ``n_max`` (the most
-        preferred candidate certified by then, or abstain).
+        Contract: with probability at least ``1 - alpha`` over the noise, the exact smoothed
+        label ``g(z)`` lies in the returned range T for every z with ``||z - x||_2 < radius``
+        (radius > eps), whichever look it stops at; it stops when the most preferred
+        candidate not yet ruled out is certified, when every candidate is ruled out
+        (futility: an abstention, never unsound), or at ``n_max``. How: bounds at looks fixed
+        in advance (:func:`look_plan`), the set radius of :func:`sequential_radius`, alpha
+        split over labels, masses and looks; the argument is docs/design.md 3.7.
 
         Args:
             x: the observed frame [C, H, W] in [0, 1].

@@ -179,10 +179,12 @@ class MedianSmoothedRegressor(SmoothedModel):
                            if hi_b[hi][0] > p_high and lo_b[lo][0] > p_high), -1) \
                 if reason == "n_max" else -1
         ys = np.sort(np.concatenate(drawn)) if drawn else None
-        return MedianDecision(chosen >= 0, candidates[chosen] if chosen >= 0 else None, chosen,
-                              base_value, t, float(eps), float(alpha), plan.name,
-                              "certified" if chosen >= 0 else reason,
-                              float(ys[math.ceil(t / 2) - 1]) if t else None)
+        return MedianDecision(
+            certified=chosen >= 0, interval=candidates[chosen] if chosen >= 0 else None,
+            index=chosen, base_value=base_value, samples=t, eps=float(eps),
+            alpha=float(alpha), bound=plan.name,
+            reason="certified" if chosen >= 0 else reason,
+            sample_median=float(ys[math.ceil(t / 2) - 1]) if t else None)
 
 
 @dataclasses.dataclass(frozen=True)

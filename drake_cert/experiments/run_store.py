@@ -60,7 +60,7 @@ def same_design_table(a: list[dict], b: list[dict], rtol: float = DESIGN_RTOL,
     """Why two design tables (:func:`design_dicts`) differ, or "" when they are the same
     design table: the same structure, strings and booleans, and every float within
     ``atol + rtol * max(|x|, |y|)``."""
-    def walk(x, y, where: str) -> str:
+    def first_difference(x, y, where: str) -> str:
         if isinstance(x, bool) or isinstance(y, bool) or isinstance(x, str) or x is None:
             return "" if x == y else f"{where}: {x!r} vs {y!r}"
         if isinstance(x, int | float) and isinstance(y, int | float):
@@ -72,19 +72,20 @@ def same_design_table(a: list[dict], b: list[dict], rtol: float = DESIGN_RTOL,
         if isinstance(x, dict) and isinstance(y, dict):
             if sorted(x) != sorted(y):
                 return f"{where}: fields {sorted(x)} vs {sorted(y)}"
-            return next((w for k in sorted(x) if (w := walk(x[k], y[k], f"{where}.{k}"))), "")
+            return next((w for k in sorted(x)
+                         if (w := first_difference(x[k], y[k], f"{where}.{k}"))), "")
         if isinstance(x, list | tuple) and isinstance(y, list | tuple):
             if len(x) != len(y):
                 return f"{where}: {len(x)} vs {len(y)} entries"
             return next((w for i, (u, v) in enumerate(zip(x, y, strict=True))
-                         if (w := walk(u, v, f"{where}[{i}]"))), "")
+                         if (w := first_difference(u, v, f"{where}[{i}]"))), "")
         return "" if x == y else f"{where}: {x!r} vs {y!r}"
 
     if len(a) != len(b):
         return f"{len(a)} designs vs {len(b)}"
     for da, db in zip(a, b, strict=True):
         name = "+".join(da.get("labels") or []) or "regression design"
-        why = walk(da, db, f"design {name}")
+        why = first_difference(da, db, f"design {name}")
         if why:
             return why
     return ""

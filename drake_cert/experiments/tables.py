@@ -315,7 +315,7 @@ def _f_tables(summary: list[dict], presets: list[str], eps: float, clean: dict) 
     lines += ["| accuracy (%) | " + " | ".join(_ours_vs_paper(
         _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
         PAPER.get(("f_clean", p)), "accuracy") for p in presets) + " |",
-        "| instability (%) | " + " | ".join(_num(_safe(
+        "| instability (%) | " + " | ".join(_num(_metric_or_none(
             _cell(summary, preset=p, pipeline="f", attack="none", eps=clean[p]),
             "instability_pct")) for p in presets) + " |",
         _paper_row(presets, "paper's instability", "f_clean", "instability"),
@@ -395,7 +395,8 @@ def _instability_certified_row(summary, presets, name, pipeline, eps, sigma) -> 
     cells = (_cell(summary, preset=p, pipeline=pipeline, attack="sa", eps=eps, sigma=sigma)
              for p in presets)
     return (f"| {name}: instability under SA (%) / certified (%) | " + " | ".join(
-        f"{_num(_safe(c, 'instability_pct'))} / {_num(_safe(c, 'certified_pct'))}"
+        f"{_num(_metric_or_none(c, 'instability_pct'))} / "
+        f"{_num(_metric_or_none(c, 'certified_pct'))}"
         for c in cells) + " |")
 
 
@@ -410,7 +411,7 @@ def _g_clean_table(summary: list[dict], config, presets: list[str]) -> list[str]
         for p in presets:
             clean = _cell(summary, preset=p, pipeline=pipe, sigma=s, attack="none",
                           eps=config.eps)
-            cells += [_num(_safe(clean, m)) for m in ("instability_pct", "velocity_mps",
+            cells += [_num(_metric_or_none(clean, m)) for m in ("instability_pct", "velocity_mps",
                                                       "certified_pct")]
         lines.append(f"| {_g_row_name(s, pipe, summary)} | " + " | ".join(cells) + " |")
     return lines
@@ -451,7 +452,7 @@ def _interval_table(summary: list[dict], config, presets: list[str], clean: dict
     for s, pipe in ((s, pipe) for s in config.sigmas for pipe in _g_pipelines(summary)):
         for attack in ("none", "sa", "ea"):
             lines.append(f"| {_g_row_name(s, pipe, summary)} | {attack} | " + " | ".join(
-                _num(_safe(_cell(summary, preset=p, pipeline=pipe, sigma=s, attack=attack,
+                _num(_metric_or_none(_cell(summary, preset=p, pipeline=pipe, sigma=s, attack=attack,
                                  eps=eps if attack != "none" else clean[p]),
                            "interval_coverage"), 1) for p in presets) + " |")
     return lines
@@ -498,11 +499,11 @@ def _regression_tables(summary: list[dict], config, presets: list[str],
             sa = _cell(summary, preset=p, pipeline="h", sigma=s, attack="sa", eps=eps)
             ea = _cell(summary, preset=p, pipeline="h", sigma=s, attack="ea", eps=eps)
             paper = PAPER.get(("h_sa", p, s))
-            lines.append(f"| {s} | {p} | {_num(_safe(sa, 'instability_pct'))} | "
-                         f"{_num(_safe(sa, 'certified_pct'))} | "
-                         f"{_num(_safe(ea, 'velocity_mps'))} | "
-                         f"{_num(_safe(ea, 'certified_pct'))} | "
-                         f"{_num(_safe(sa, 'interval_coverage'), 1)} | "
+            lines.append(f"| {s} | {p} | {_num(_metric_or_none(sa, 'instability_pct'))} | "
+                         f"{_num(_metric_or_none(sa, 'certified_pct'))} | "
+                         f"{_num(_metric_or_none(ea, 'velocity_mps'))} | "
+                         f"{_num(_metric_or_none(ea, 'certified_pct'))} | "
+                         f"{_num(_metric_or_none(sa, 'interval_coverage'), 1)} | "
                          f"{_paper(paper, 'instability')} | {_paper(paper, 'velocity_mps')} |")
     return lines
 
@@ -521,7 +522,7 @@ def _sweep_table(summary: list[dict], config, presets: list[str]) -> list[str]:
             def get(pipe, attack, metric, p=p, e=e):
                 c = _cell(summary, preset=p, pipeline=pipe, attack=attack, eps=e,
                           sigma=0.0 if pipe == "f" else config.sweep_sigma)
-                return _num(_safe(c, metric))
+                return _num(_metric_or_none(c, metric))
             lines.append(f"| {p} | {e} | {get('f', 'sa', 'instability_pct')} | "
                          f"{get('g', 'sa', 'instability_pct')} | "
                          f"{get('g', 'sa', 'certified_pct')} | {get('f', 'ea', 'velocity_mps')}"
@@ -544,7 +545,8 @@ def _g_row_name(sigma: float, pipeline: str, summary: list[dict]) -> str:
     return f"{sigma} ({'safe-set' if pipeline == 'g' else 'conformal'})"
 
 
-def _safe(cell, metric):
+def _metric_or_none(cell, metric):
+    """``cell[metric]``, or None for a cell the run did not fill."""
     return cell[metric] if cell else None
 
 

@@ -214,15 +214,18 @@ def _uniform(n: int, lo: float, hi: float, generator: torch.Generator) -> torch.
     return lo + (hi - lo) * torch.rand(n, generator=generator)
 
 
-def _rgb(*values: float) -> torch.Tensor:
+def colour_rgb(*values: float) -> torch.Tensor:
+    """An RGB colour (three values in [0, 1]) as a [1, 3, 1, 1] tensor that broadcasts over
+    frames and pixels."""
     return torch.tensor(values, dtype=torch.float32)[None, :, None, None]
 
 
-def _mix(a: torch.Tensor, b: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+def blend(a: torch.Tensor, b: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Linear blend ``a + (b - a) t``: ``a`` at t = 0, ``b`` at t = 1."""
     return a + (b - a) * t
 
 
-def _col(t: torch.Tensor) -> torch.Tensor:
+def per_frame(t: torch.Tensor) -> torch.Tensor:
     """Per-frame scalar [n] -> broadcastable [n, 1, 1, 1]."""
     return t[:, None, None, None]
 
@@ -292,7 +295,7 @@ def render_frames(style: ConditionStyle, severity: torch.Tensor, *,
         snowed = _snow_cover(style, s, _SurfaceColours(road, verge, tree_col),
                              _Textures(fine, verge_tex, tree_tex), geo, g)
         road, verge, tree_col = snowed.road, snowed.verge, snowed.tree_col
-    img = _mix(verge, road, on_road[:, None])
+    img = blend(verge, road, on_road[:, None])
     img = torch.where(geo.ground[:, None] > 0, img,
                       torch.where(trees[:, None] > 0, tree_col, sky))
     img = _fog(img, lerp(style.fog, s), geo, low)
@@ -328,12 +331,12 @@ def _sky_and_trees(style: ConditionStyle, geo: _Geometry, n: int, g: torch.Gener
     else:
         overcast = lerp(style.overcast, torch.rand(n, generator=g))
     height = (horizon - y).clamp_min(0.0) / horizon
-    zenith = _mix(_rgb(0.22, 0.42, 0.85), _rgb(0.58, 0.6, 0.63), _col(overcast))
-    low = _mix(_rgb(0.72, 0.8, 0.93), _rgb(0.7, 0.71, 0.73), _col(overcast))
-    sky = _mix(low, zenith, height[:, None].sqrt())
+    zenith = blend(colour_rgb(0.22, 0.42, 0.85), colour_rgb(0.58, 0.6, 0.63), per_frame(overcast))
+    low = blend(colour_rgb(0.72, 0.8, 0.93), colour_rgb(0.7, 0.71, 0.73), per_frame(overcast))
+    sky = blend(low, zenith, height[:, None].sqrt())
     clouds = sample_periodic(fractal_noise(n, g, beta=1.6), x / (height + 0.3) * 0.4,
                              1.0 / (height + 0.3) * 0.3)
-    cloud_amp = _col((1 - overcast) * _uniform(n, 0.05, 0.25, g) + overcast * 0.04)
+    cloud_amp = per_frame((1 - overcast) * _uniform(n, 0.05, 0.25, g) + overcast * 0.04)
     sky = sky + cloud_amp * clouds[:, None]
     if style.shadows:
         sun_x = _uniform(n, 0.1, 0.9, g)[:, None, None]
@@ -345,7 +348,7 @@ def _sky_and_trees(style: ConditionStyle, geo: _Geometry, n: int, g: torch.Gener
               .clamp(-1.5, 1.5)) * _uniform(n, 0.3, 1.2, g)[:, None, None]
     trees = ((y > horizon - tree_h) & (y <= horizon)).float()
     tree_tex = sample_periodic(fractal_noise(n, g, beta=0.8), x * 3, y * 3)
-    tree_col = _rgb(0.16, 0.22, 0.13) * (1 + 0.25 * tree_tex[:, None])
+    tree_col = colour_rgb(0.16, 0.22, 0.13) * (1 + 0.25 * tree_tex[:, None])
     return sky, low, zenith, trees, tree_col, tree_tex
 
 
@@ -357,7 +360,8 @@ def _verge_and_surface(style: ConditionStyle, s: torch.Tensor, geo: _Geometry, n
     """
     X, Z, pixel_x = geo.X, geo.Z, geo.pixel_x
     verge_kind = torch.rand(n, generator=g)
-    verge_base = _mix(_rgb(0.26, 0.4, 0.17), _rgb(0.45, 0.38, 0.27), _col(verge_kind))
+    verge_base = blend(colour_rgb(0.26, 0.4, 0.17), colour_rgb(0.45, 0.38, 0.27),
+                       per_frame(verge_kind))
     verge_tex = sample_periodic(fractal_noise(n, g, beta=1.0), X / 2, Z / 4)
     verge = verge_base * (1 + 0.25 * verge_tex[:, None])
     on_road = ((geo.road_half - X.abs()) / pixel_x + 0.5).clamp(0.0, 1.0)
@@ -366,7 +370,7 @@ def _verge_and_surface(style: ConditionStyle, s: torch.Tensor, geo: _Geometry, n
     coarse = sample_periodic(fractal_noise(n, g, beta=1.4), X / 6, Z / 20)
     near = (geo.depth_row * 6).clamp(0.0, 1.0)  # grain fades towards the horizon
     if style.surface == "asphalt":
-        base = _rgb(0.34, 0.34, 0.36) * (1 + 0.06 * coarse[:, None])
+        base = colour_rgb(0.34, 0.34, 0.36) * (1 + 0.06 * coarse[:, None])
         road = base * (1 + (3 * grain_amp * near * fine)[:, None])
     elif style.surface == "cobblestone":
         road = _cobblestones(geo, s, grain_amp * near, fine, g)
@@ -392,7 +396,7 @@ def _lane_marks(road: torch.Tensor, geo: _Geometry, n: int, g: torch.Generator) 
     marks = (line(road_half - 0.06, 0.03) + line(-road_half + 0.06, 0.03)
              + dash * line(torch.zeros_like(X), 0.025)).clamp(max=1.0)
     marks = marks * torch.exp(-geo.Z / 60)
-    return _mix(road, _rgb(0.85, 0.85, 0.8), marks[:, None])
+    return blend(road, colour_rgb(0.85, 0.85, 0.8), marks[:, None])
 
 
 def _tree_shadows(road, verge, geo: _Geometry, n: int, g: torch.Generator):
@@ -408,14 +412,14 @@ def _wet_road(road, wet: torch.Tensor, geo: _Geometry, low, zenith,
     """Wet road (wetness ``wet`` [n]): darker, reflects the mirrored sky, puddles when very wet."""
     n = geo.n
     mirror_h = ((geo.y - geo.horizon) / geo.horizon).clamp(0.0, 1.0)
-    mirrored = _mix(low, zenith, mirror_h[:, None].sqrt())
+    mirrored = blend(low, zenith, mirror_h[:, None].sqrt())
     fresnel = 0.25 + 0.75 * torch.exp(-geo.depth_row * 5)
     puddle_noise = sample_periodic(fractal_noise(n, g, beta=1.5), geo.X / 3, geo.Z / 8)
     puddle = ((puddle_noise - (2.2 - 2.0 * wet[:, None, None])) / 0.15).clamp(0.0, 1.0)
-    reflect = (_col(wet) * 0.55 * fresnel[:, None]).clamp(max=1.0)
+    reflect = (per_frame(wet) * 0.55 * fresnel[:, None]).clamp(max=1.0)
     reflect = torch.maximum(reflect, 0.85 * puddle[:, None])
-    road = road * (1 - 0.45 * _col(wet))
-    return _mix(road, mirrored * 0.8, reflect)
+    road = road * (1 - 0.45 * per_frame(wet))
+    return blend(road, mirrored * 0.8, reflect)
 
 
 def _snow_cover(style: ConditionStyle, s, colours: _SurfaceColours, textures: _Textures,
@@ -425,26 +429,26 @@ def _snow_cover(style: ConditionStyle, s, colours: _SurfaceColours, textures: _T
     road, verge, tree_col = colours.road, colours.verge, colours.tree_col
     fine, verge_tex, tree_tex = textures.fine, textures.verge_tex, textures.tree_tex
     cover = lerp(style.snow_cover, s)
-    snow_col = _rgb(0.9, 0.92, 0.96)
+    snow_col = colour_rgb(0.9, 0.92, 0.96)
     drift = sample_periodic(fractal_noise(n, g, beta=1.1), X / 2, geo.Z / 6)
     tracks = torch.exp(-((X.abs() - 0.45 * geo.road_half) / 0.14) ** 2)
     amount = ((drift * 0.5 + 2 * cover[:, None, None] - 1) * 2.5).clamp(0.0, 1.0)
     amount = amount * (1 - 0.85 * tracks)
-    road = _mix(road, snow_col * (1 + 0.04 * fine[:, None]), amount[:, None])
-    verge = _mix(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
-                 _col(lerp(style.verge_snow, s)))
-    tree_col = _mix(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
+    road = blend(road, snow_col * (1 + 0.04 * fine[:, None]), amount[:, None])
+    verge = blend(verge, snow_col * (1 + 0.05 * verge_tex[:, None]),
+                 per_frame(lerp(style.verge_snow, s)))
+    tree_col = blend(tree_col, snow_col, 0.35 * (tree_tex[:, None] > 0.3).float())
     return _SurfaceColours(road, verge, tree_col)
 
 
 def _fog(img, fog: torch.Tensor, geo: _Geometry, low) -> torch.Tensor:
     """Fog (extinction ``fog`` [n] per unit depth x 0.1); the sky blends into the fog colour."""
     fog = fog[:, None, None]
-    fog_col = _mix(low, _rgb(0.75, 0.76, 0.78), 0.6)
+    fog_col = blend(low, colour_rgb(0.75, 0.76, 0.78), 0.6)
     depth = torch.where(geo.ground > 0, geo.Z, torch.full_like(geo.Z, 80.0))
     fog_amount = 1 - torch.exp(-fog * depth * 0.1)
     fog_amount = torch.where(geo.ground > 0, fog_amount, fog_amount * 0.8)
-    return _mix(img, fog_col, fog_amount[:, None])
+    return blend(img, fog_col, fog_amount[:, None])
 
 
 def _precipitation(img, style: ConditionStyle, s, size: int, n: int,
@@ -456,14 +460,14 @@ def _precipitation(img, style: ConditionStyle, s, size: int, n: int,
         angle = 0.25 * torch.randn(n, generator=g)
         k = 2 * int(math.ceil(style.streak_length_px[1] * size / 64 * 0.75)) + 1
         streaks = sparse_kernel_splat(density, line_kernels(length, angle, k), size, g)
-        amp = _col(_uniform(n, 0.25, 0.4, g))
+        amp = per_frame(_uniform(n, 0.25, 0.4, g))
         img = img + amp * streaks[:, None] * (0.95 - img).clamp_min(0.0)
     flakes_d = lerp(style.flake_density, s)
     if style.flake_density[1] > 0:
         radius = _uniform(n, 0.4, 1.1, g) * size / 64
         k = 2 * int(math.ceil(1.6 * size / 64)) + 1
         flakes = sparse_kernel_splat(flakes_d, disc_kernels(radius, k), size, g)
-        img = _mix(img, _rgb(0.95, 0.95, 0.97).expand_as(img), 0.8 * flakes[:, None])
+        img = blend(img, colour_rgb(0.95, 0.95, 0.97).expand_as(img), 0.8 * flakes[:, None])
     return img
 
 
@@ -484,7 +488,7 @@ def _cobblestones(geo: _Geometry, s, amp, fine, g) -> torch.Tensor:
     dome = 0.8 + 0.2 * (edge / 0.5).clamp(0, 1).sqrt()
     joint = ((gap - edge) / 0.02).clamp(0.0, 1.0)
     lum = shade * dome * (1 + 2 * amp * fine) * (1 - 0.6 * joint)
-    return _rgb(0.44, 0.42, 0.4) * lum[:, None]
+    return colour_rgb(0.44, 0.42, 0.4) * lum[:, None]
 
 
 def _sand(geo: _Geometry, s, amp, fine, coarse, g) -> torch.Tensor:
@@ -494,7 +498,7 @@ def _sand(geo: _Geometry, s, amp, fine, coarse, g) -> torch.Tensor:
     ripple_amp = (0.04 + 0.1 * s)[:, None, None]
     ripples = torch.sin(2 * math.pi * (Z / wavelength + 0.6 * coarse + 0.3 * X))
     lum = 1 + ripple_amp * ripples + 2 * amp * fine + 0.08 * coarse
-    return _rgb(0.62, 0.53, 0.39) * lum[:, None]
+    return colour_rgb(0.62, 0.53, 0.39) * lum[:, None]
 
 
 def camera_response(img: torch.Tensor, generator: torch.Generator, *,
@@ -505,23 +509,23 @@ def camera_response(img: torch.Tensor, generator: torch.Generator, *,
     n = img.shape[0]
     size = img.shape[-1]
     tod = torch.rand(n, generator=g)  # 0 dawn/dusk (warm, dim), 1 noon (white)
-    illum = _mix(torch.tensor([1.0, 0.78, 0.58])[None], torch.ones(1, 3), tod[:, None])
+    illum = blend(torch.tensor([1.0, 0.78, 0.58])[None], torch.ones(1, 3), tod[:, None])
     illum = illum * (0.55 + 0.45 * tod[:, None])
     wb = torch.exp(0.12 * torch.randn(n, 3, generator=g))
     exposure = torch.exp(0.3 * torch.randn(n, generator=g))
     gain = illum * wb * exposure[:, None]
     img = (img * gain[:, :, None, None]).clamp(0.0, 1.0)
     gamma = _uniform(n, 0.8, 1.25, g)
-    img = img ** _col(gamma)
+    img = img ** per_frame(gamma)
     r = (torch.arange(size, dtype=torch.float32) + 0.5) / size - 0.5
     vig = 1 - _uniform(n, 0.0, 0.5, g)[:, None, None] * (r[None, :, None] ** 2 + r[None, None] ** 2)
     img = img * vig[:, None]
-    img = img + _col(_uniform(n, 0.004, 0.02, g)) * torch.randn(img.shape, generator=g)
+    img = img + per_frame(_uniform(n, 0.004, 0.02, g)) * torch.randn(img.shape, generator=g)
     # auto-exposure + grey-world white balance to a random, class-independent target
     target = _uniform(n, 0.3, 0.55, g)[:, None] * torch.exp(0.07 * torch.randn(n, 3, generator=g))
     contrast_gain = contrast * _uniform(n, 0.8, 1.2, g)
     mean = img.mean(dim=(2, 3))
-    img = target[:, :, None, None] + (img - mean[:, :, None, None]) * _col(contrast_gain)
+    img = target[:, :, None, None] + (img - mean[:, :, None, None]) * per_frame(contrast_gain)
     for _ in range(4):  # clipping moves the mean; shift it back
         img = img.clamp(0.0, 1.0)
         img = img + (target - img.mean(dim=(2, 3)))[:, :, None, None]

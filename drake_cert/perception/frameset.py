@@ -45,8 +45,8 @@ class FrameSet:
 
     def per_class(self, count: int) -> FrameSet:
         """The first ``count`` frames of every class (in order of appearance)."""
-        keep = torch.zeros(len(self), dtype=torch.bool)
+        chosen = torch.zeros(len(self), dtype=torch.bool)
         for k in range(len(self.label_names)):
             idx = torch.nonzero(self.labels == k).flatten()[:count]
-            keep[idx] = True
-        return self.subset(keep)
+            chosen[idx] = True
+        return self.subset(chosen)
