@@ -160,7 +160,7 @@ class Route:
         ``drake_cert.systems.road.Road.preview_curvature_at``). ``ahead_m``, ``window_m`` >= 0 may
         be arrays (they scale with the speed); where ``window_m`` is 0 (the car at rest) the
         mean is its limit, the curvature at ``s + ahead_m``."""
-        if np.ndim(s_m) == np.ndim(ahead_m) == np.ndim(window_m) == 0:  # one point: no numpy
+        if _scalars(s_m, ahead_m, window_m):  # one point: no numpy
             hi, w = float(s_m) + float(ahead_m), float(window_m)
             if w <= 1e-9:
                 return np.float64(self._integral_and_curvature(hi)[1])
@@ -208,6 +208,11 @@ class Route:
         y = np.concatenate(([0.0], np.cumsum(0.5 * (sn[1:] + sn[:-1]) * ds)))
         sc = np.clip(s, 0.0, end)
         return np.interp(sc, grid, x), np.interp(sc, grid, y), np.interp(sc, grid, heading)
+
+
+def _scalars(*values) -> bool:
+    """Every value a single number (the per-step path), checked without numpy's dispatch."""
+    return all(isinstance(v, float | int) or np.ndim(v) == 0 for v in values)
 
 
 class RouteSource(LeafSystem):
