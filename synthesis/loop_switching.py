@@ -152,6 +152,15 @@ def dropout_jump(reference: np.ndarray, sample_period_s: float) -> np.ndarray:
     return jump
 
 
+def dropout_factor(p: np.ndarray, reference: np.ndarray, sample_period_s: float) -> float:
+    """The most one switch's dropout at this reference matrix multiplies ``z' P_z z`` by: the
+    largest generalized eigenvalue of ``(J' P_z J, P_z)``, J of :func:`dropout_jump`."""
+    import scipy.linalg
+
+    jump = dropout_jump(reference, sample_period_s)
+    return float(scipy.linalg.eigh(jump.T @ p @ jump, p, eigvals_only=True).max())
+
+
 def loop_jump_factor(vehicle: VehicleParams, designs: list[ControllerDesign],
                      speed_min_mps: float, law: str, p: np.ndarray,
                      sample_period_s: float, offset: float = 0.0) -> float:
@@ -160,14 +169,6 @@ def loop_jump_factor(vehicle: VehicleParams, designs: list[ControllerDesign],
     ends of every design's certified interval and the speeds of :func:`loop_speeds` (at least
     1). With the loops decaying at ``lambda_z`` between switches, an average dwell above
     ``ln(mu_z) / (2 lambda_z)`` keeps them stable (Hespanha and Morse; docs/design.md 5.6 (b))."""
-    import scipy.linalg
-
-    worst = 1.0
-    for d in designs:
-        if not d.has_safe_speed:
-            continue
-        for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=offset):
-            jump = dropout_jump(m, sample_period_s)
-            worst = max(worst, float(scipy.linalg.eigh(jump.T @ p @ jump, p,
-                                                       eigvals_only=True).max()))
-    return worst
+    return max([1.0] + [dropout_factor(p, m, sample_period_s) for d in designs
+                        if d.has_safe_speed
+                        for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=offset)])

@@ -265,13 +265,12 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
 
 
 def _dropout_failure(p, m, settings, certificate, name, key, c, v) -> str:
-    """A failure when one switch's estimate dropout (the jump of
-    :func:`drake_cert.synthesis.loop_switching.dropout_jump` at this reference matrix) can
+    """A failure when one switch's estimate dropout
+    (:func:`drake_cert.synthesis.loop_switching.dropout_factor` at this reference matrix) can
     multiply ``z' P_z z`` by more than the stored ``loop_jump_factor``; else ''."""
-    from drake_cert.synthesis.loop_switching import dropout_jump
+    from drake_cert.synthesis.loop_switching import dropout_factor
 
-    jump = dropout_jump(m, settings.controller.sample_period_s)
-    mu = float(scipy.linalg.eigh(jump.T @ p @ jump, p, eigvals_only=True).max())
+    mu = dropout_factor(p, m, settings.controller.sample_period_s)
     if mu > certificate.loop_jump_factor * (1.0 + 1e-6):
         return (f"{name}: a switch's estimate dropout multiplies the loop Lyapunov function by "
                 f"{mu:.6g} > the stored loop_jump_factor {certificate.loop_jump_factor} for "
