@@ -1,26 +1,29 @@
-"""Switching among designs with the L1 filter state included (docs/design.md 5.6).
+"""Switching among designs with the L1 filter state included (docs/design.md 5.6 (b)).
 
 The reference system of a design (condition 5.3b,
 :func:`drake_cert.synthesis.conditions.reference_system_matrix`) is the L1 loop with the ideal
 estimate: plant and low-pass filter, state ``z = [s, u_ad]`` (m, m/s, rad, rad/s; rad),
-``z' = R_i(C, V) z`` plus the known inputs (feedforward and road). At a design switch ``s``
-is continuous and the piecewise-constant law hands ``u_ad`` over
-(``systems/switching_controller.py``), so ``z`` is continuous, and one matrix ``P_z`` with
+``z' = R_i(C, V) z`` plus the known inputs (feedforward and road). The certificate is posed in
+the *steering coordinates* ``zeta = [s, u - u_ff] = T_i z``, ``T_i = [[I, 0], [-k_i', 1]]``
+(:func:`steering_coordinates`): at a design switch the piecewise-constant law keeps the
+steering and carries its estimate over (``systems/l1_law.py``,
+``piecewise_constant_hand_over``), so ``s`` and ``u`` are continuous, and ``zeta`` moves only
+by the change of feedforward (0 on a straight road). One matrix ``P_z`` with
 
-    R_i(C, V)' P_z + P_z R_i(C, V) + 2 lambda_z P_z <= 0
+    M_i(C, V)' P_z + P_z M_i(C, V) + 2 lambda_z P_z <= 0,    M_i = T_i R_i T_i^-1,
 
-for every design i of a family and every (C, V) of its range makes ``z' P_z z`` fall at rate
-``2 lambda_z`` whatever design is in force and however often it switches.
+for every design i of a family and every (C, V) of its range makes ``zeta' P_z zeta`` fall at
+rate ``2 lambda_z`` whatever design is in force and however often it switches.
 
-Where it is checked. For a fixed speed ``R_i`` is affine in C (``theta``, the unmatched part
-and ``w`` are; the piecewise-constant law's ``r_c`` depends on V only), so the two ends of the
-design's certified interval cover every C between them exactly. In V it is not affine (``r_c``
-holds ``A_m(V)^-1``): speeds are checked on a grid of :data:`LOOP_SPEED_STEP_MPS` from
-``speed_min`` to the design's safe speed plus :data:`LOOP_SPEED_MARGIN_MPS` (the margin of the
-state-feedback box), as condition 5.3b is for this law; a measurement
-between grid speeds, not a certificate, and stated so. The gradient law's filter row is affine
-in ``(C, C/V, 1/V)`` and its corners would suffice, but for the shipped designs no common
-matrix exists for it (measured): its families get none.
+Where it is checked. For a fixed speed ``M_i`` is affine in C (``theta``, the unmatched part
+and ``w`` are; the piecewise-constant law's ``r_c`` depends on V only; ``T_i`` is constant),
+so the two ends of the design's certified interval cover every C between them exactly. In V it
+is not affine (``r_c`` holds ``A_m(V)^-1``): speeds are checked on a grid of
+:data:`LOOP_SPEED_STEP_MPS` from ``speed_min`` to the design's safe speed plus
+:data:`LOOP_SPEED_MARGIN_MPS` (the margin of the state-feedback box), as condition 5.3b is for
+this law; a measurement between grid speeds, not a certificate, and stated so. The gradient
+law's filter row is affine in ``(C, C/V, 1/V)`` and its corners would suffice, but for the
+shipped designs no common matrix exists for it (measured): its families get none.
 
 Solved with cvxpy + Clarabel at the first feasible rate of :data:`LOOP_DECAY_TRIALS` (any
 lambda_z > 0 proves the claim; the stored rate is the least the matrix proves on the grid and
@@ -67,12 +70,25 @@ def loop_speeds(design: ControllerDesign, speed_min_mps: float, offset: float = 
     return np.unique(np.concatenate([[speed_min_mps], grid, [top]]))
 
 
+def steering_coordinates(reference: np.ndarray, k_m) -> np.ndarray:
+    """``T R T^-1`` (5 x 5, 1/s): a design's reference matrix ``R`` on ``z = [s, u_ad]`` as it
+    acts on ``zeta = [s, u - u_ff] = T z``, ``T = [[I, 0], [-k_m', 1]]``
+    (``u - u_ff = -k_m' s + u_ad``)."""
+    k = np.asarray(k_m, dtype=float).reshape(4)
+    t = np.eye(5)
+    t[4, :4] = -k
+    t_inv = np.eye(5)
+    t_inv[4, :4] = k
+    return t @ reference @ t_inv
+
+
 def loop_matrices(vehicle: VehicleParams, design: ControllerDesign, speed_min_mps: float,
                   law: str, offset: float = 0.0, stride: int = 1) -> list[np.ndarray]:
-    """``R_i(C, V)`` (5 x 5, 1/s) at both ends of the certified interval and every speed of
-    :func:`loop_speeds`."""
-    return [reference_system_matrix(vehicle, design.k_m, design.nominal_stiffness_n_per_rad,
-                                    c, v, design.filter_gain, law)
+    """``M_i(C, V)`` (5 x 5, 1/s; :func:`steering_coordinates` of the reference system) at both
+    ends of the certified interval and every speed of :func:`loop_speeds`."""
+    return [steering_coordinates(
+                reference_system_matrix(vehicle, design.k_m, design.nominal_stiffness_n_per_rad,
+                                        c, v, design.filter_gain, law), design.k_m)
             for c in design.certified_interval
             for v in loop_speeds(design, speed_min_mps, offset, stride)]
 
@@ -133,42 +149,3 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
         chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
     return None
-
-
-def dropout_jump(reference: np.ndarray, sample_period_s: float) -> np.ndarray:
-    """The jump ``z+ = J z-`` (5 x 5) of a design switch on the L1 loop ``z = [s, u_ad]``
-    whose reference matrix at the (C, V) in force is ``reference`` (docs/design.md 5.6 (b)).
-
-    At a switch the piecewise-constant law restarts its predictor at the measured state, so
-    for one sample period T_s the filter ``u_ad' = -k w (u_ad - u*)``, ``u* = -q' s / w``,
-    runs without its input: at the period's end ``u_ad`` lacks ``(1 - e^{-k w T_s}) u*`` of
-    what the reference loop (the ideal estimate) would hold, with s frozen over the period
-    (1 ms against time constants above 0.1 s). So ``J = I + (1 - e^{-k w T_s}) e_5 [q'/w, 0]``,
-    read off the reference matrix's filter row ``[-k q', -k w]``.
-    """
-    kw = -float(reference[4, 4])
-    jump = np.eye(5)
-    jump[4, :4] += (1.0 - np.exp(-kw * sample_period_s)) * reference[4, :4] / reference[4, 4]
-    return jump
-
-
-def dropout_factor(p: np.ndarray, reference: np.ndarray, sample_period_s: float) -> float:
-    """The most one switch's dropout at this reference matrix multiplies ``z' P_z z`` by: the
-    largest generalized eigenvalue of ``(J' P_z J, P_z)``, J of :func:`dropout_jump`."""
-    import scipy.linalg
-
-    jump = dropout_jump(reference, sample_period_s)
-    return float(scipy.linalg.eigh(jump.T @ p @ jump, p, eigvals_only=True).max())
-
-
-def loop_jump_factor(vehicle: VehicleParams, designs: list[ControllerDesign],
-                     speed_min_mps: float, law: str, p: np.ndarray,
-                     sample_period_s: float, offset: float = 0.0) -> float:
-    """``mu_z``: the largest factor by which one switch's dropout (:func:`dropout_jump`) can
-    multiply ``z' P_z z``, the largest generalized eigenvalue of ``(J' P_z J, P_z)`` over both
-    ends of every design's certified interval and the speeds of :func:`loop_speeds` (at least
-    1). With the loops decaying at ``lambda_z`` between switches, an average dwell above
-    ``ln(mu_z) / (2 lambda_z)`` keeps them stable (Hespanha and Morse; docs/design.md 5.6 (b))."""
-    return max([1.0] + [dropout_factor(p, m, sample_period_s) for d in designs
-                        if d.has_safe_speed
-                        for m in loop_matrices(vehicle, d, speed_min_mps, law, offset=offset)])

@@ -49,6 +49,9 @@ DWELL = "dwell"
 NONE = "none"  # no design of the set has a safe speed: nothing switches
 METHODS = (COMMON, DWELL, NONE)
 TABLE_FAMILY = "table"  # the family name when a table embeds no conditions (all its designs)
+# the state the L1 loops' matrix is stated on (loop_switching.steering_coordinates); files
+# written before it have a matrix on [s, u_ad] with a dwell for the estimate's dropout
+LOOP_STATE = "s, u - u_ff"
 
 DECAY_BISECTION_TOLERANCE = 1.0e-3  # 1/s, the common-P decay bisection
 DWELL_DECAY_FRACTIONS = (0.5, 0.75)  # of settings.decay_rate: lambda_0 candidates
@@ -83,9 +86,8 @@ class SwitchingCertificate:
     filter state (:mod:`drake_cert.synthesis.loop_switching`), None when there is none (the
     gradient law, or none found); ``loop_decay_rate_per_s``: the rate lambda_z it proves on its
     grid; ``loop_law``: the adaptation law whose reference loops it covers;
-    ``loop_jump_factor``: mu_z, the most one switch's estimate dropout can multiply
-    ``z' P_z z`` by (:func:`drake_cert.synthesis.loop_switching.loop_jump_factor`);
-    ``loop_dwell_time_s``: ``ln(mu_z) / (2 lambda_z)``, the average dwell the L1 loops need;
+    the matrix is stated on the steering coordinates ``[s, u - u_ff]`` (:data:`LOOP_STATE`), which
+    a switch leaves in place, so the L1 loops need no dwell;
     ``solve_time_s``: wall time of the solve (informative: not checked, not saved).
     """
 
@@ -101,8 +103,6 @@ class SwitchingCertificate:
     loop_lyapunov_matrix: tuple[tuple[float, ...], ...] | None = None
     loop_decay_rate_per_s: float = 0.0
     loop_law: str = ""
-    loop_jump_factor: float = 1.0
-    loop_dwell_time_s: float = 0.0
     solve_time_s: float = dataclasses.field(default=0.0, compare=False)
 
 
@@ -246,16 +246,9 @@ def with_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign
                                  settings.synthesis.lmi_margin)
     if found is None:
         return dataclasses.replace(certificate, loop_law=law)
-    from drake_cert.synthesis.loop_switching import loop_jump_factor
-
     p, rate = found
-    mu = _round_up(max(loop_jump_factor(vehicle, designs, settings.synthesis.speed_min_mps,
-                                        law, p, settings.controller.sample_period_s, offset)
-                       for offset in (0.0, 0.5)))  # the grid and verify's shifted one
-    dwell = _round_up(math.log(mu) / (2.0 * rate)) if mu > 1.0 else 0.0
     return dataclasses.replace(certificate, loop_lyapunov_matrix=_as_rows(p),
-                               loop_decay_rate_per_s=rate, loop_law=law, loop_jump_factor=mu,
-                               loop_dwell_time_s=dwell)
+                               loop_decay_rate_per_s=rate, loop_law=law)
 
 
 def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
@@ -455,29 +448,7 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
         out["switching_certificate_met"] = False
         out["switching_note"] = (GRADIENT_LOOP_NOTE if certificate.loop_law == "gradient"
                                  else LOOP_MISSING_NOTE)
-    elif certificate.loop_lyapunov_matrix is not None:
-        out.update(_loop_dwell_report(certificate, times))
-        if not out.pop("loop_dwell_met"):
-            out["switching_certificate_met"] = False
-            out["switching_note"] = (
-                f"the designs switched faster than the L1 loops' average dwell of "
-                f"{certificate.loop_dwell_time_s:.3g} s (each switch drops the adaptive estimate "
-                f"for one sample: a jump of at most {certificate.loop_jump_factor:.4g} in their "
-                f"Lyapunov function); they still decay at half their rate after a growth of at "
-                f"most {out['loop_growth_bound']:.3g} (docs/design.md 5.6)")
     return out
-
-
-def _loop_dwell_report(certificate: SwitchingCertificate, times) -> dict:
-    """The L1 loops against their average dwell: ``loop_certified_average_dwell_s``, the
-    chatter bound ``loop_chatter_bound_n0`` at twice that dwell with the growth
-    ``loop_growth_bound = mu_z^N_0`` it allows (then ``z' P_z z`` decays at ``lambda_z / 2`` at
-    least), and whether consecutive switches kept the dwell (chatter bound at most 1)."""
-    dwell = certificate.loop_dwell_time_s
-    n0 = chatter_bound(times, 2.0 * dwell) if dwell > 0 else 0.0
-    return {"loop_certified_average_dwell_s": dwell, "loop_chatter_bound_n0": n0,
-            "loop_growth_bound": certificate.loop_jump_factor ** n0,
-            "loop_dwell_met": dwell <= 0 or chatter_bound(times, dwell) <= 1.0}
 
 
 GRADIENT_LOOP_NOTE = ("the gradient law's L1 loops have no switching certificate (no common "
@@ -506,8 +477,7 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
     if certificate.loop_lyapunov_matrix is not None:
         out["loop_lyapunov_matrix"] = [list(row) for row in certificate.loop_lyapunov_matrix]
         out["loop_decay_rate_per_s"] = float(certificate.loop_decay_rate_per_s)
-        out["loop_jump_factor"] = float(certificate.loop_jump_factor)
-        out["loop_dwell_time_s"] = float(certificate.loop_dwell_time_s)
+        out["loop_state"] = LOOP_STATE
     if certificate.loop_law:
         out["loop_law"] = certificate.loop_law
     if certificate.modes:
@@ -519,14 +489,18 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
 
 _CERT_REQUIRED = ("family", "method", "designs_covered", "decay_rate_per_s", "dwell_time_s")
 _CERT_OPTIONAL = ("lyapunov_matrix", "modes", "jump_factor", "condition_number",
-                  "loop_lyapunov_matrix", "loop_decay_rate_per_s", "loop_law",
-                  "loop_jump_factor", "loop_dwell_time_s")
+                  "loop_lyapunov_matrix", "loop_decay_rate_per_s", "loop_law", "loop_state")
+OLD_LOOP_MATRIX = ("{where}.loop_lyapunov_matrix was written by an older drake-cert for the "
+                   "state [s, u_ad], before a switch carried the L1 estimate over; run "
+                   "drake-cert synthesize again")
 
 
 def certificate_from_dict(data, where: str) -> SwitchingCertificate:
     """Parse one certificate mapping; :class:`ValueError` naming ``where`` and the key."""
     if not isinstance(data, dict):
         raise ValueError(f"{where} must be a mapping")
+    if "loop_lyapunov_matrix" in data and data.get("loop_state") != LOOP_STATE:
+        raise ValueError(OLD_LOOP_MATRIX.format(where=where))
     unknown = sorted(set(data) - set(_CERT_REQUIRED) - set(_CERT_OPTIONAL))
     if unknown:
         raise ValueError(f"{where}: unknown key {unknown[0]!r}")
@@ -544,8 +518,7 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
     numbers = {}
     for key, default in (("decay_rate_per_s", None), ("dwell_time_s", None),
                          ("jump_factor", 1.0), ("condition_number", 1.0),
-                         ("loop_decay_rate_per_s", 0.0), ("loop_jump_factor", 1.0),
-                         ("loop_dwell_time_s", 0.0)):
+                         ("loop_decay_rate_per_s", 0.0)):
         value = data.get(key, default)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or math.isnan(value):
             raise ValueError(f"{where}.{key} = {value!r} must be a number")
@@ -576,9 +549,7 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
         decay_rate_per_s=numbers["decay_rate_per_s"], dwell_time_s=numbers["dwell_time_s"],
         lyapunov_matrix=matrix, modes=tuple(parsed_modes), jump_factor=numbers["jump_factor"],
         condition_number=numbers["condition_number"], loop_lyapunov_matrix=loop,
-        loop_decay_rate_per_s=numbers["loop_decay_rate_per_s"], loop_law=loop_law,
-        loop_jump_factor=numbers["loop_jump_factor"],
-        loop_dwell_time_s=numbers["loop_dwell_time_s"])
+        loop_decay_rate_per_s=numbers["loop_decay_rate_per_s"], loop_law=loop_law)
 
 
 def _matrix(rows, where: str, size: int = 4) -> tuple[tuple[float, ...], ...]:

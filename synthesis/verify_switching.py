@@ -10,7 +10,8 @@ built here from eq. 2.45 itself, decays at the stored rate under the matrix
 "dwell", the modes' largest ``lambda_max(P_n^-1 P_m)`` is within the stored mu and the dwell time
 at least ``ln(mu) / (2 lambda_0)``; and the L1 loops' 5 x 5 matrix, when stored, reaches its
 rate at both interval ends and on a speed grid shifted half a step from the synthesis's, with
-the reference system built by the caller (verify's own builder). Failures are readable strings.
+the reference system built by the caller (verify's own builder) and moved here to the steering
+coordinates ``[s, u - u_ff]`` it is stated on. Failures are readable strings.
 """
 
 import math
@@ -211,6 +212,16 @@ def check_speeds(design: ControllerDesign, speed_min_mps: float) -> np.ndarray:
     return np.unique(np.concatenate([[speed_min_mps], inner, [top]]))
 
 
+def _on_steering(reference: np.ndarray, k_m: np.ndarray) -> np.ndarray:
+    """The reference matrix on ``[s, u_ad]`` as it acts on ``[s, u_ad - k_m' s]``: the last row
+    gains ``-k_m'`` times the plant rows, the last column's effect is added back into the
+    state columns (``u_ad = zeta_5 + k_m' s``)."""
+    m = np.array(reference, dtype=float)
+    m[4, :] -= k_m @ m[:4, :]
+    m[:, :4] += np.outer(m[:, 4], k_m)
+    return m
+
+
 def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                    reference_matrix) -> list[str]:
     """The L1 loops' matrix, when stored: for the law of ``settings`` (when known), finite,
@@ -240,7 +251,7 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
         for c in d.certified_interval:
             for v in check_speeds(d, speed_min_mps):
                 try:
-                    m = reference_matrix(d, c, v)
+                    m = _on_steering(reference_matrix(d, c, v), d.k_m_array)
                 except np.linalg.LinAlgError:  # e.g. a gain that leaves A_m singular
                     return [f"{name}: design {key} has no reference loop to check the loop "
                             "matrix on (its nominal loop A_m is singular)"]
@@ -252,27 +263,4 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                     return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
                             f"{certificate.loop_decay_rate_per_s}/s for design {key} at "
                             f"C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-                if isinstance(settings, Settings):
-                    failure = _dropout_failure(p, m, settings, certificate, name, key, c, v)
-                    if failure:
-                        return [failure]
-    need = (math.log(certificate.loop_jump_factor) / (2.0 * certificate.loop_decay_rate_per_s)
-            if certificate.loop_jump_factor > 1.0 else 0.0)
-    if certificate.loop_dwell_time_s < need * (1.0 - 1e-9):
-        return [f"{name}: loop_dwell_time_s = {certificate.loop_dwell_time_s} s is below "
-                f"ln(mu_z) / (2 lambda_z) = {need:.6g} s"]
     return []
-
-
-def _dropout_failure(p, m, settings, certificate, name, key, c, v) -> str:
-    """A failure when one switch's estimate dropout
-    (:func:`drake_cert.synthesis.loop_switching.dropout_factor` at this reference matrix) can
-    multiply ``z' P_z z`` by more than the stored ``loop_jump_factor``; else ''."""
-    from drake_cert.synthesis.loop_switching import dropout_factor
-
-    mu = dropout_factor(p, m, settings.controller.sample_period_s)
-    if mu > certificate.loop_jump_factor * (1.0 + 1e-6):
-        return (f"{name}: a switch's estimate dropout multiplies the loop Lyapunov function by "
-                f"{mu:.6g} > the stored loop_jump_factor {certificate.loop_jump_factor} for "
-                f"design {key} at C = {c:.6g} N/rad, V = {v:.4g} m/s")
-    return ""

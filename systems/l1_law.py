@@ -352,6 +352,61 @@ def piecewise_constant_update(p: L1Parameters, s_hat, u_ad, s, curvature,
     return predictor_memory(p, s_hat_next, curvature), u_ad_next
 
 
+def piecewise_constant_inverse_estimate(p: L1Parameters, sigma_hat):
+    """The prediction error ``s_tilde`` from which :func:`piecewise_constant_estimate` gives
+    ``sigma_hat``: ``s_tilde = -e^{-A_m T_s} Phi(T_s) sigma_hat`` (4-vector)."""
+    return np.linalg.solve(p.pc_gain, np.asarray(sigma_hat, dtype=float))
+
+
+def carried_estimate(old: L1Parameters, new: L1Parameters, sigma_old, s, u_ad: tuple,
+                     curvature: float, feedforward_curvature: float | None = None):
+    """The new design's uncertainty estimate at a switch, from the old design's (DESIGN 5.6).
+
+    Each design d models ``s' = A_m,d s + b_d (u_ad,d + u_ff,d) + g_d V_d kappa + sigma_d``
+    (``u_ff,d`` at the preview curvature, ``g_d V_d kappa`` at the curvature under the car), so
+    at one instant with the same ``s'`` (the steering continuous across the switch,
+    :func:`piecewise_constant_hand_over`) the two totals differ by known terms only:
+
+        sigma_new = sigma_old + (A_m,old - A_m,new) s + b_old (u_ad,old + u_ff,old)
+                    - b_new (u_ad,new + u_ff,new) + g_old V_old kappa - g_new V_new kappa.
+
+    Nothing about the plant (its stiffness, its tire) enters. ``u_ad`` is the pair
+    ``(u_ad,old, u_ad,new)`` (rad).
+    """
+    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
+    s = np.asarray(s, dtype=float)
+
+    def known(p: L1Parameters, adaptive: float):
+        return (p.a_m @ s + p.b_m * (adaptive + curvature_feedforward(p, kappa_ff))
+                + p.g_hat * (p.speed_mps * curvature))
+
+    return np.asarray(sigma_old, dtype=float) + known(old, u_ad[0]) - known(new, u_ad[1])
+
+
+def piecewise_constant_hand_over(old: L1Parameters, new: L1Parameters, q_hat, u_ad: float, s,
+                                 curvature: float, feedforward_curvature: float | None = None):
+    """A design switch of the piecewise-constant law at a sample: ``(q_hat, u_ad)`` for the
+    new design's parameters, to be advanced by :func:`piecewise_constant_update` (DESIGN 5.6).
+
+    Bumpless: ``u_ad,new = u + k_m,new' s - u_ff,new`` keeps the steering ``u`` the old design
+    applies. Carried: the old design's estimate at this sample (from its own prediction error)
+    becomes the new design's by :func:`carried_estimate`, and the predictor is placed where the
+    new design's law reads exactly that estimate (:func:`piecewise_constant_inverse_estimate`).
+    So the loop state ``[s, u - u_ff]`` and the estimate run on through the switch; the one
+    thing that moves is ``u - u_ff`` by the change of feedforward, ``u_ff,old - u_ff,new``
+    (0 on a straight road). ``q_hat`` is in the old design's jump-free coordinates, the result
+    in the new's.
+    """
+    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
+    s = np.asarray(s, dtype=float)
+    u = steering_command(old, s, u_ad, curvature, kappa_ff)
+    u_ad_new = float(u + new.k_m @ s - curvature_feedforward(new, kappa_ff))
+    sigma_old = piecewise_constant_estimate(old, predicted_measurement(old, q_hat, curvature) - s)
+    sigma_new = carried_estimate(old, new, sigma_old, s, (u_ad, u_ad_new), curvature, kappa_ff)
+    s_hat = s + piecewise_constant_inverse_estimate(new, sigma_new)
+    return predictor_memory(new, s_hat, curvature), u_ad_new
+
+
 def piecewise_constant_initial_state(s0, p: L1Parameters | None = None,
                                      curvature: float = 0.0) -> np.ndarray:
     """Predictor at the plant's state s0 (at curvature kappa; needs ``p`` when kappa != 0),

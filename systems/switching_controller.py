@@ -11,8 +11,9 @@ grid index, stopped (0/1), held steering (rad)]``.
 
 ``law="piecewise_constant"`` (default): the law of :mod:`drake_cert.systems.l1_law` (DESIGN 4),
 its parameters moving. At each sample t_k, inputs read at t_k: (1) a requested design becomes
-active (dwell is enforced upstream, in the certified-interval block) with u_ad handed over and
-s_hat reset to the measured s; (2) V is clipped to [speed_min_mps, the design's
+active (dwell is enforced upstream, in the certified-interval block) with the steering kept
+and the estimate carried over (:func:`~drake_cert.systems.l1_law.piecewise_constant_hand_over`;
+from a stop, s_hat restarts at the measured s); (2) V is clipped to [speed_min_mps, the design's
 ``gain_speed_max_mps``] and rounded to ``speed_step_mps``, the parameters of each (design, grid
 point) computed once and cached; (3) ``piecewise_constant_update`` advances (s_hat, u_ad); the
 output is ``steering_command`` with these parameters until the next sample. Below
@@ -252,11 +253,12 @@ class SwitchingL1Law(LeafSystem):
         kappa = float(curvatures[0])
         speed = float(self._speed.Eval(context)[0])
         requested = self._requested_design(context)
-        switched = requested != int(z[DESIGN])  # switch: hand over u_ad, predictor restarts at s
+        old = (int(z[DESIGN]), int(z[GRID]))
+        switched = requested != old[0]
         z[DESIGN] = requested
         design = int(z[DESIGN])
         if speed < self.speed_min_mps:  # stopped: no adaptation, steering held
-            if switched:
+            if switched:  # nothing adapts while stopped: the predictor restarts at s
                 z[S_HAT] = l1_law.predictor_memory(self.law_at(design, int(z[GRID])).parameters,
                                                    s, kappa)
             if not z[STOPPED]:
@@ -264,10 +266,16 @@ class SwitchingL1Law(LeafSystem):
                 z[HELD] = self._steering(law, z[U_AD], s, curvatures)
                 z[STOPPED] = 1.0
         else:
+            was_stopped = bool(z[STOPPED])
             z[STOPPED] = 0.0
             z[GRID] = self.grid_index(design, speed)
             law = self.law_at(design, int(z[GRID]))
-            if switched:  # the predictor at s, in its jump-free coordinates (l1_law)
+            if switched and not was_stopped:  # bumpless, the estimate carried (l1_law)
+                preview = curvatures[1] if self.curvature_preview else None
+                z[S_HAT], z[U_AD] = l1_law.piecewise_constant_hand_over(
+                    self.law_at(*old).parameters, law.parameters, z[S_HAT], z[U_AD], s, kappa,
+                    preview)
+            elif switched:  # resuming from a stop: the predictor at s
                 z[S_HAT] = l1_law.predictor_memory(law.parameters, s, kappa)
             if self.fast:
                 z[0:5] = law.update @ np.concatenate([z[0:5], s, curvatures, [1.0]])

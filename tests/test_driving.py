@@ -89,14 +89,13 @@ def test_certified_car_stays_in_lane_where_the_base_car_is_fooled_on_snow(under_
     assert base.summary["interval_covers_true_fraction"] < 0.5
     assert base.summary["time_unprotected_s"] > 1.0
     # switching among the preset's state-feedback loops is certified at any rate (jointly
-    # synthesized gains); the L1 loops with their filter state have a matrix too, and an average
-    # dwell (each switch drops the estimate for a sample): the drive says whether it kept it
+    # synthesized gains); so are the L1 loops with their filter state (the estimate is carried
+    # across a switch, docs/design.md 5.6 (b)): the drive's switching met its certificate
     assert certified.summary["switching_method"] == "common"
     assert certified.summary["loop_switching_decay_per_s"] > 0.0
-    assert certified.summary["loop_certified_average_dwell_s"] > 0.0
-    assert certified.summary["loop_growth_bound"] >= 1.0
-    assert certified.summary["switching_certificate_met"] is (
-        "switching_note" not in certified.summary)
+    assert certified.summary["design_switches"] > 0
+    assert certified.summary["switching_certificate_met"] is True
+    assert "switching_note" not in certified.summary
 
 
 def test_under_an_efficiency_attack_the_certified_car_keeps_moving(setup):

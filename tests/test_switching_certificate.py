@@ -242,9 +242,9 @@ def test_switching_that_respects_the_dwell_time_stays_under_the_average_dwell_bo
 
 
 def test_every_presets_l1_reference_loops_share_a_matrix_with_the_filter_state(certified):
-    """z = [s, u_ad]: one P_z with R_i' P_z + P_z R_i + 2 lambda_z P_z <= 0 at both ends of
-    every design's interval and every speed of a grid between the synthesis's grid speeds (the
-    piecewise-constant law, the one that runs)."""
+    """zeta = [s, u - u_ff]: one P_z with M_i' P_z + P_z M_i + 2 lambda_z P_z <= 0 at both ends
+    of every design's interval and every speed of a grid between the synthesis's grid speeds
+    (the piecewise-constant law, the one that runs; M_i its reference loop on zeta)."""
     from drake_cert.synthesis.loop_switching import loop_matrices, loop_speeds
     from drake_cert.synthesis.switching import certified_rate
 
@@ -270,7 +270,11 @@ def test_the_loop_certificate_holds_above_each_safe_speed_by_the_tracking_margin
     """The car may run up to its speed tracking error above the design's safe speed: the L1
     loops' matrix proves its rate there too, up to the state-feedback box's 1 m/s margin, at
     both interval ends, at speeds the synthesis did not pose its LMI at."""
-    from drake_cert.synthesis.loop_switching import LOOP_SPEED_MARGIN_MPS, loop_speed_top
+    from drake_cert.synthesis.loop_switching import (
+        LOOP_SPEED_MARGIN_MPS,
+        loop_speed_top,
+        steering_coordinates,
+    )
     from drake_cert.synthesis.switching import certified_rate
 
     assert LOOP_SPEED_MARGIN_MPS == 1.0
@@ -282,7 +286,8 @@ def test_the_loop_certificate_holds_above_each_safe_speed_by_the_tracking_margin
             assert top >= d.speed_mps + 0.5  # the gain box reaches V_grip + 1 >= V + 1
             for v in (d.speed_mps + 0.1, d.speed_mps + 0.37, d.speed_mps + 0.61, top):
                 for stiffness in d.certified_interval:
-                    m = reference_matrix(certified.vehicle, d, stiffness, v)
+                    m = steering_coordinates(reference_matrix(certified.vehicle, d, stiffness, v),
+                                             d.k_m)
                     assert certified_rate(p, m) >= c.loop_decay_rate_per_s - 1e-6, (d.labels, v)
 
 
@@ -308,56 +313,47 @@ def test_verify_rejects_a_loop_rate_claimed_without_its_matrix(rtk_file, tmp_pat
     _verify_fails(_edited(rtk_file, tmp_path, drop), capsys, "stores no loop matrix")
 
 
-def test_a_switchs_estimate_dropout_is_bounded_by_the_stored_jump_factor(certified):
-    """At a switch the piecewise-constant law restarts its predictor: for one sample the
-    filter runs without its input. Against the ideal estimate that is the jump
-    z+ = J z-; ``z' P_z z`` grows by at most the stored mu_z, and the L1 loops need an average
-    dwell of ln(mu_z) / (2 lambda_z) (docs/design.md 5.6 (b))."""
-    from drake_cert.synthesis.loop_switching import dropout_jump, loop_matrices
+def test_the_loop_matrix_is_stated_on_the_state_a_switch_leaves_in_place(certified):
+    """A switch keeps s and the steering u (the estimate carried over, systems/l1_law.py), so
+    zeta = [s, u - u_ff] is continuous on a straight road: the same z' P_z z before and after,
+    although u_ad = u - u_ff + k_m' s jumps with the gain. The certificate's M_i is R_i on zeta."""
+    from drake_cert.synthesis.loop_switching import loop_matrices, steering_coordinates
 
-    t_s = certified.settings.controller.sample_period_s
     rng = np.random.default_rng(0)
     for c in certified.switching:
-        p = np.array(c.loop_lyapunov_matrix)
-        assert 1.0 < c.loop_jump_factor < 1.2
-        assert c.loop_dwell_time_s == pytest.approx(
-            math.log(c.loop_jump_factor) / (2 * c.loop_decay_rate_per_s), rel=1e-4)
-        for d in _family(certified, c.family)[:3]:
-            for m in loop_matrices(certified.vehicle, d, _speed_min(certified), c.loop_law,
-                                   offset=0.25):
-                jump = dropout_jump(m, t_s)
-                # the filter alone over one period, s frozen: the reference loop moves u_ad
-                # toward u* = -q's / w, the running loop (no input) only decays
-                kw = -m[4, 4]
-                for z in rng.normal(size=(4, 5)):
-                    u_star = -(m[4, :4] @ z[:4]) / m[4, 4]
-                    reference = np.exp(-kw * t_s) * z[4] + (1 - np.exp(-kw * t_s)) * u_star
-                    running = np.exp(-kw * t_s) * z[4]
-                    after = np.append(z[:4], reference)
-                    assert (jump @ after)[4] == pytest.approx(running, rel=1e-9, abs=1e-12)
-                    assert after @ jump.T @ p @ jump @ after <= \
-                        c.loop_jump_factor * (after @ p @ after) * (1 + 1e-6)
+        assert c.loop_lyapunov_matrix is not None
+        designs = _family(certified, c.family)
+        a, b = designs[0], designs[-1]
+        m = loop_matrices(certified.vehicle, a, _speed_min(certified), c.loop_law)[0]
+        reference = reference_matrix(certified.vehicle, a, a.certified_interval[0],
+                                     _speed_min(certified))
+        assert np.allclose(m, steering_coordinates(reference, a.k_m))
+        for s in rng.normal(size=(3, 4)):
+            u = 0.01 * rng.normal()  # the steering, kept across the switch
+            u_ad_a, u_ad_b = u + a.k_m_array @ s, u + b.k_m_array @ s
+            assert u_ad_a != pytest.approx(u_ad_b)
+            zeta_a = np.append(s, u_ad_a - a.k_m_array @ s)
+            zeta_b = np.append(s, u_ad_b - b.k_m_array @ s)
+            assert np.allclose(zeta_a, zeta_b)
 
 
-def test_a_drive_that_switches_faster_than_the_l1_loops_dwell_says_so(certified):
+def test_a_drive_that_switches_every_frame_meets_the_loop_certificate(certified):
     cert = _certificate(certified, "robotcar-like")
-    slow = switching.drive_switching_report(cert, [3.0, 6.5, 10.0])
-    assert slow["switching_certificate_met"] is True and "switching_note" not in slow
-    fast = [10.0 + 0.1 * i for i in range(8)]
+    fast = [10.0 + 0.1 * i for i in range(8)] + [11.0 + 0.001 * i for i in range(5)]
     report = switching.drive_switching_report(cert, fast)
-    assert report["switching_certificate_met"] is False
-    assert "average dwell" in report["switching_note"]
-    n0 = switching.chatter_bound(fast, 2 * cert.loop_dwell_time_s)
-    assert report["loop_chatter_bound_n0"] == n0 > 1
-    assert report["loop_growth_bound"] == pytest.approx(cert.loop_jump_factor ** n0)
+    assert report["switching_certificate_met"] is True and "switching_note" not in report
+    assert report["loop_switching_decay_per_s"] == cert.loop_decay_rate_per_s > 0
 
 
-def test_verify_rejects_an_understated_loop_jump_factor(rtk_file, tmp_path, capsys):
-    def understate(certs, raw):
-        certs["rtk-like"]["loop_jump_factor"] = 1.0
-        certs["rtk-like"]["loop_dwell_time_s"] = 0.0
+def test_a_loop_matrix_written_for_the_old_state_is_refused_on_load(rtk_file, tmp_path):
+    from drake_cert.errors import DesignFormatError
 
-    _verify_fails(_edited(rtk_file, tmp_path, understate), capsys, "estimate dropout")
+    def old(certs, raw):
+        del certs["rtk-like"]["loop_state"]
+        certs["rtk-like"]["loop_jump_factor"] = 1.026
+
+    with pytest.raises(DesignFormatError, match="older drake-cert.*synthesize again"):
+        load_design_file(_edited(rtk_file, tmp_path, old))
 
 
 def test_a_drive_that_switches_l1_loops_without_a_common_matrix_is_not_reported_certified(

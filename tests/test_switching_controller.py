@@ -176,6 +176,50 @@ def test_a_design_switch_acts_at_the_sample_after_the_request():
 
 
 @pytest.mark.parametrize("preview", [False, True])
+def test_a_switch_keeps_the_steering_and_carries_the_estimate_exactly(preview):
+    """docs/design.md 5.6 (b): at a switch the steering is the same under both designs and the
+    new design reads, from its placed predictor, exactly the uncertainty it has on the plant
+    (here eq. 2.45 at a stiffness both intervals hold, on a curve, the preview bending more),
+    given that the old design read its own exactly. The controller's update at the switch is
+    the hand-over followed by the new design's sample."""
+    from drake_cert.dynamics import lateral_error_dynamics
+    from drake_cert.systems import l1_law
+
+    ctrl, ctx, s = _controller_context(curvature_preview=preview)
+    kappa, kappa_ff = 1 / 60, (1 / 52 if preview else 1 / 60)
+    old, new = (ctrl.law_at(i, ctrl.grid_index(i, SPEED)).parameters for i in (0, 1))
+    a, b, g = lateral_error_dynamics(CAR, 42_000.0, SPEED)
+
+    def truth(p, u_ad):
+        u = l1_law.steering_command(p, s, u_ad, kappa, kappa_ff)
+        s_dot = a @ s + b * u + g * SPEED * kappa
+        return u, (s_dot - p.a_m @ s - p.b_m * (u_ad + l1_law.curvature_feedforward(p, kappa_ff))
+                   - p.g_hat * p.speed_mps * kappa)
+
+    u_ad = 0.004
+    u_old, sigma_old = truth(old, u_ad)
+    q = l1_law.predictor_memory(old, s + l1_law.piecewise_constant_inverse_estimate(old,
+                                                                                 sigma_old),
+                                kappa)
+    q_new, u_ad_new = l1_law.piecewise_constant_hand_over(old, new, q, u_ad, s, kappa,
+                                                          kappa_ff if preview else None)
+    u_new, sigma_new = truth(new, u_ad_new)
+    assert u_new == pytest.approx(u_old, abs=1e-15)  # bumpless
+    read = l1_law.piecewise_constant_estimate(
+        new, l1_law.predicted_measurement(new, q_new, kappa) - s)
+    np.testing.assert_allclose(read, sigma_new, rtol=1e-9, atol=1e-12)
+    assert not np.allclose(sigma_new, sigma_old)  # the designs' uncertainties differ
+    ctx.SetDiscreteState(np.concatenate([q, [u_ad, 0, ctrl.grid_index(0, SPEED), 0, 0]]))
+    ctrl.GetInputPort("design_index").FixValue(ctx, [1.0])
+    after = ctrl.EvalUniquePeriodicDiscreteUpdate(ctx).get_vector().CopyToVector()
+    expected = l1_law.piecewise_constant_update(new, q_new, u_ad_new, s, kappa,
+                                                kappa_ff if preview else None)
+    np.testing.assert_allclose(after[:4], expected[0], rtol=1e-9, atol=1e-12)
+    assert after[4] == pytest.approx(expected[1], rel=1e-9, abs=1e-12)
+    assert after[5] == 1.0
+
+
+@pytest.mark.parametrize("preview", [False, True])
 def test_the_fast_update_is_the_law_evaluated_directly(preview):
     fast, ctx_f, s = _controller_context(fast=True, curvature_preview=preview)
     slow, ctx_s, _ = _controller_context(fast=False, curvature_preview=preview)

@@ -269,7 +269,6 @@ def format_summaries(summaries: list[dict]) -> str:
             ("guarantee_failure_bound", "{:.2e}"),
             ("design_switches", "{}"), ("switching_method", "{}"),
             ("switching_certificate_met", "{}"), ("loop_switching_decay_per_s", "{:.3f}"),
-            ("loop_certified_average_dwell_s", "{:.3f}"), ("loop_growth_bound", "{:.3g}"),
             ("ending", "{}"), ("simulated_s", "{:.1f}"), ("real_time_factor", "{:.2f}"),
             ("decision", "{}"), ("mean_samples_per_tick", "{:.0f}"), ("precision", "{}"),
             ("backend", "{}"))

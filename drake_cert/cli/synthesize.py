@@ -101,9 +101,9 @@ def format_switching(certificates) -> str:
             continue
         what = ("common Lyapunov matrix, any switching rate" if c.method == "common" else
                 f"average dwell {c.dwell_time_s:.3g} s (not enforced by the car)")
-        loops = (f"L1 loops: common matrix, decay {c.loop_decay_rate_per_s:.3g}/s, average dwell "
-                 f"{c.loop_dwell_time_s:.3g} s (a switch's estimate dropout: x"
-                 f"{c.loop_jump_factor:.4g})"
+        loops = (f"L1 loops: common matrix on [s, u - u_ff], decay "
+                 f"{c.loop_decay_rate_per_s:.3g}/s, any switching rate (the estimate carried "
+                 "across a switch)"
                  if c.loop_lyapunov_matrix is not None else
                  "L1 loops: no common matrix, switching among them NOT certified")
         lines.append(f"switching ({c.family}): state-feedback loops {c.method}: {what}; decay "
