@@ -194,7 +194,8 @@ def sample_period_filter_gain_limit(settings: Settings, interval) -> float:
 
 
 def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
-                 slip_bound: float | None = None) -> SpeedSearchResult:
+                 slip_bound: float | None = None,
+                 filter_gain_cap: float | None = None) -> SpeedSearchResult:
     """Largest safe speed with its filter gain and margins (module docstring).
 
     ``slip_bound``: the design's normalised tire slip bound z_b (default
@@ -202,11 +203,14 @@ def search_speed(evaluator: IntervalEvaluator, friction_mu_lo: float,
     The scan runs at ``k_bar = filter_gain_max`` (for the piecewise-constant law at most its
     sample-period limit, :func:`sample_period_filter_gain_limit`); where the L1 condition binds
     and that law runs, it runs again at the sample-period limit when that is higher, and the
-    faster of the two results is returned.
+    faster of the two results is returned. ``filter_gain_cap`` (1/s): no filter gain above it,
+    the sample-period raise included (the table's L1 loops, :mod:`drake_cert.synthesis.table`).
     """
     settings = evaluator.settings
     k_bar = settings.synthesis.filter_gain_max
     limit = sample_period_filter_gain_limit(settings, evaluator.interval)
+    if filter_gain_cap is not None:
+        k_bar, limit = min(k_bar, filter_gain_cap), min(limit, filter_gain_cap)
     sampled = evaluator.law == cond.PIECEWISE_CONSTANT
     if sampled:
         k_bar = min(k_bar, limit)

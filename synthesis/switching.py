@@ -169,6 +169,7 @@ class _CommonProblem:
     def __init__(self, matrices, margin):
         import cvxpy as cp
 
+        self.matrices = list(matrices)
         self.decay = cp.Parameter(nonneg=True)
         self.p = cp.Variable((4, 4), symmetric=True)
         t = cp.Variable()
@@ -177,13 +178,23 @@ class _CommonProblem:
         self.problem = cp.Problem(cp.Minimize(t), constraints)
 
     def solve(self, decay):
-        """Normalised P (smallest eigenvalue 1) at this decay rate, or None."""
-        from drake_cert.synthesis.gains import solve_sdp
+        """Normalised P (smallest eigenvalue 1) at this decay rate, or None. A solution Clarabel
+        calls inaccurate is kept when the matrix itself proves the rate at every matrix
+        (generalized eigenvalues): the status is not the certificate, the matrix is."""
+        import cvxpy as cp
+
+        from drake_cert.synthesis.gains import solve_sdp_status
 
         self.decay.value = decay
-        if not solve_sdp(self.problem) or self.p.value is None:
+        status = solve_sdp_status(self.problem)
+        if status not in (cp.OPTIMAL, cp.OPTIMAL_INACCURATE) or self.p.value is None:
             return None
-        return _normalised(self.p.value)
+        p = _normalised(self.p.value)
+        if status == cp.OPTIMAL_INACCURATE:
+            proved = min(certified_rate(p, m) for m in self.matrices)
+            if not (proved > 0.0 and proved >= decay):
+                return None
+        return p
 
 
 def _normalised(p: np.ndarray) -> np.ndarray:

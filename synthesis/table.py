@@ -82,6 +82,9 @@ class DesignCache:
     evaluators: dict = dataclasses.field(default_factory=dict)
     failures: dict = dataclasses.field(default_factory=dict)
     joint: dict = dataclasses.field(default_factory=dict)
+    # designs whose filter gain was capped so their family's L1 loops share a matrix:
+    # (labels, filter gain before, after, safe speed before, after), in that order
+    capped: list = dataclasses.field(default_factory=list)
 
 
 def joint_solve_report(cache: DesignCache) -> dict | None:
@@ -223,12 +226,12 @@ def design_for_slip_bound(vehicle: VehicleParams, label_range: LabelRange, setti
 
 
 def _searched_design(evaluator: IntervalEvaluator, label_range: LabelRange, c_hat,
-                     slip_bound, law) -> ControllerDesign:
+                     slip_bound, law, filter_gain_cap: float | None = None) -> ControllerDesign:
     """The design of ``label_range`` with the evaluator's gains and the speed search's filter
-    gain and safe speed at ``slip_bound``."""
+    gain (at most ``filter_gain_cap``) and safe speed at ``slip_bound``."""
     labels, label_interval = label_range.labels, label_range.interval
     friction_mu_lo = label_range.friction_mu_lo
-    result = search_speed(evaluator, friction_mu_lo, slip_bound)
+    result = search_speed(evaluator, friction_mu_lo, slip_bound, filter_gain_cap)
     return ControllerDesign(
         labels=list(labels),
         stiffness_lo_n_per_rad=label_interval[0],
@@ -293,5 +296,73 @@ def synthesize_table(vehicle: VehicleParams, conditions: ConditionsTable, settin
     """
     cache = cache if cache is not None else DesignCache()
     ranges = design_label_ranges(conditions)
-    return [synthesize_label_range(vehicle, conditions, labels, settings, cache, gains)
-            for labels in (progress(ranges) if progress is not None else ranges)]
+    designs = [synthesize_label_range(vehicle, conditions, labels, settings, cache, gains)
+               for labels in (progress(ranges) if progress is not None else ranges)]
+    return with_switchable_l1_loops(vehicle, conditions, settings, designs, cache)
+
+
+FILTER_GAIN_CAP_FRACTIONS = (1.0, 0.95, 0.9, 0.85, 0.8, 0.7, 0.6, 0.5)  # of filter_gain_max
+
+
+def with_switchable_l1_loops(vehicle: VehicleParams, conditions: ConditionsTable,
+                             settings: Settings, designs: list[ControllerDesign],
+                             cache: DesignCache) -> list[ControllerDesign]:
+    """``designs`` with the filter gains lowered where that gives a preset's L1 loops a common
+    matrix (docs/design.md 5.6 (b)).
+
+    Where the L1 condition binds, the speed search raises a filter gain past
+    ``filter_gain_max`` up to its sample-period limit (5.3a). A fast filter in one design and a
+    slow one in another can leave a preset's L1 loops with no common matrix, and their switching
+    uncertified. For such a preset (piecewise-constant law) the raised designs are searched again
+    with the filter gain capped at the fractions :data:`FILTER_GAIN_CAP_FRACTIONS` of
+    ``filter_gain_max``, largest first, until the loops share a matrix: a slower safe speed
+    where the L1 condition binds, for a switching certificate at any rate. Each change is
+    recorded in ``cache.capped``; when no cap helps the designs are kept (and the preset's
+    certificate says its L1 loops are not certified).
+    """
+    from drake_cert.synthesis.conditions import PIECEWISE_CONSTANT
+    from drake_cert.synthesis.loop_switching import loop_lyapunov_matrix
+    from drake_cert.synthesis.switching import design_key, switching_families
+
+    if settings.controller.adaptation_law != PIECEWISE_CONSTANT:
+        return designs
+    syn = settings.synthesis
+
+    def share_a_matrix(members) -> bool:
+        return loop_lyapunov_matrix(vehicle, members, syn.speed_min_mps, PIECEWISE_CONSTANT,
+                                    syn.lmi_margin) is not None
+
+    by_key = {design_key(d): d for d in designs}
+    for _, members in switching_families(designs, conditions):
+        covered = [by_key[design_key(d)] for d in members if d.has_safe_speed]
+        raised = [d for d in covered if d.filter_gain > syn.filter_gain_max * (1.0 + 1e-9)]
+        if len(covered) < 2 or not raised or share_a_matrix(covered):
+            continue
+        for fraction in FILTER_GAIN_CAP_FRACTIONS:
+            capped = {design_key(d): _capped_design(vehicle, settings, d, cache,
+                                                    fraction * syn.filter_gain_max)
+                      for d in raised}
+            trial = [capped.get(design_key(d), d) for d in covered]
+            if all(d.has_safe_speed for d in capped.values()) and share_a_matrix(trial):
+                for key, d in capped.items():
+                    cache.capped.append((by_key[key].labels, by_key[key].filter_gain,
+                                         d.filter_gain, by_key[key].speed_mps, d.speed_mps))
+                    by_key[key] = d
+                break
+    return [by_key[design_key(d)] for d in designs]
+
+
+def _capped_design(vehicle: VehicleParams, settings: Settings, design: ControllerDesign,
+                   cache: DesignCache, cap: float) -> ControllerDesign:
+    """``design`` searched again with its gain, slip bound and interval, the filter gain at
+    most ``cap`` (1/s)."""
+    key = (design.certified_interval, tuple(design.k_m), design.gain_speed_max_mps)
+    if key not in cache.evaluators:
+        cache.evaluators[key] = IntervalEvaluator(vehicle, settings, design.certified_interval,
+                                                  design.k_m_array, design.gain_speed_max_mps)
+    label_range = LabelRange(tuple(design.labels), (design.stiffness_lo_n_per_rad,
+                                                    design.stiffness_hi_n_per_rad),
+                             design.friction_mu_lo)
+    return _searched_design(cache.evaluators[key], label_range,
+                            design.nominal_stiffness_n_per_rad, design.tire_slip_bound,
+                            design.certified_law, cap)

@@ -91,6 +91,15 @@ def format_joint_solve(report: dict) -> str:
             f"{report['proved_decay_per_s']:.4g}/s, cond X {cond_x:.3g}")
 
 
+def format_capped(capped) -> str:
+    """One line per design whose filter gain was lowered so its preset's L1 loops share a
+    matrix (:func:`drake_cert.synthesis.table.with_switchable_l1_loops`)."""
+    return "\n".join(
+        f"filter gain of {'+'.join(labels)} capped {k0:.4g} -> {k1:.4g} 1/s so its preset's L1 "
+        f"loops share a Lyapunov matrix: safe speed {v0:.2f} -> {v1:.2f} m/s"
+        for labels, k0, k1, v0, v1 in capped)
+
+
 def format_switching(certificates) -> str:
     """One line per preset: the switching certificate's method, decay rate and dwell for the
     state-feedback loops, and whether the L1 loops have a common matrix (docs/design.md 5.6)."""
@@ -178,6 +187,11 @@ def run(args: argparse.Namespace) -> int:
     if joint is not None:
         prov["joint_gain_solve"] = joint
         print(format_joint_solve(joint), file=sys.stderr)
+    if cache.capped:
+        prov["filter_gains_capped"] = [
+            {"labels": list(labels), "filter_gain_before": k0, "filter_gain": k1,
+             "speed_before_mps": v0, "speed_mps": v1} for labels, k0, k1, v0, v1 in cache.capped]
+        print(format_capped(cache.capped), file=sys.stderr)
     table = with_switching_certificates(DesignTable(designs, vehicle, settings, prov, conditions))
     print(format_switching(table.switching), file=sys.stderr)
     stopped = [d for d in designs if not d.has_safe_speed]
