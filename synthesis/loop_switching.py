@@ -32,6 +32,8 @@ reference systems and generalized eigenvalues (no solver;
 :mod:`drake_cert.synthesis.verify_switching`).
 """
 
+import math
+
 import numpy as np
 
 from drake_cert.config import VehicleParams
@@ -151,3 +153,84 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
             return best, float(f"{np.floor(rate * 1e6) / 1e6:.6g}")
         chosen += [grid[i] for i in np.flatnonzero(rates <= 0.5 * trial)]
     return None
+
+
+LOOP_DWELL_DECAYS = (0.05, 0.02)  # lambda_0 tried for the per-design matrices (1/s)
+LOOP_JUMP_START = 1.0e4  # first mu tried (feasible whenever every design has a matrix alone)
+LOOP_JUMP_RATIO = 1.05  # the mu bisection stops when hi / lo <= this
+
+
+def loop_dwell_matrices(vehicle: VehicleParams, designs: list[ControllerDesign],
+                        speed_min_mps: float, law: str, lmi_margin: float
+                        ) -> tuple[list[np.ndarray], float, float] | None:
+    """Per-design matrices for the L1 loops when they share none (docs/design.md 5.6 (b)):
+    ``(P_i per design with a safe speed, lambda_0, mu)`` with ``M' P_i + P_i M + 2 lambda_0 P_i
+    <= 0`` at every matrix of design i's grid (:func:`loop_matrices`, and its half-step shift)
+    and ``P_i <= mu P_j`` for every pair; or None (the gradient law, or a design whose loops
+    have no matrix alone).
+
+    zeta is continuous at a switch (the estimate carried, the steering kept), so
+    ``zeta' P_sigma zeta`` grows by at most mu at a switch and falls at ``2 lambda_0`` between
+    switches: stable for switching with an average dwell above ``ln(mu) / (2 lambda_0)``
+    (Hespanha and Morse). Posed on every :data:`COARSE_STRIDE`-th grid speed, checked on the
+    whole grid and its shift, grid points added where a matrix falls short (at most
+    :data:`LOOP_ROUNDS` rounds); for each lambda_0 of :data:`LOOP_DWELL_DECAYS` mu is bisected
+    (geometric, to :data:`LOOP_JUMP_RATIO`) and the pair with the least dwell kept. The returned
+    lambda_0 and mu are what the matrices prove (a shared scale: the smallest eigenvalue
+    among them is 1)."""
+    from drake_cert.synthesis.switching import _largest_jump, _ModeProblem
+
+    covered = [d for d in designs if d.has_safe_speed]
+    if not covered or law == GRADIENT:
+        return None
+    try:
+        grids = [loop_matrices(vehicle, d, speed_min_mps, law)
+                 + loop_matrices(vehicle, d, speed_min_mps, law, offset=0.5) for d in covered]
+        chosen = [loop_matrices(vehicle, d, speed_min_mps, law, stride=COARSE_STRIDE)
+                  for d in covered]
+    except np.linalg.LinAlgError:
+        return None
+    if not all(np.all(np.isfinite(m)) for grid in grids for m in grid):
+        return None
+    best = None
+    for decay in LOOP_DWELL_DECAYS:
+        for _ in range(LOOP_ROUNDS):
+            found = _bisected_modes(_ModeProblem([((), mats) for mats in chosen], lmi_margin, 5),
+                                    decay)
+            if found is None:
+                break
+            shortfalls = [[m for m in grid if certified_rate(p, m) <= 0.5 * decay]
+                          for p, grid in zip(found, grids, strict=True)]
+            if not any(shortfalls):
+                scale = min(float(np.linalg.eigvalsh(p).min()) for p in found)
+                ps = [p / scale for p in found]
+                rate = min(certified_rate(p, m) for p, grid in zip(ps, grids, strict=True)
+                           for m in grid)
+                mu = max(_largest_jump(ps), 1.0)
+                dwell = math.log(mu) / (2.0 * rate)
+                if best is None or dwell < best[0]:
+                    best = (dwell, ps, rate, mu)
+                break
+            chosen = [c + s for c, s in zip(chosen, shortfalls, strict=True)]
+    if best is None:
+        return None
+    return best[1], best[2], best[3]
+
+
+def _bisected_modes(problem, decay: float) -> list[np.ndarray] | None:
+    """The matrices at the least jump factor found by bisection (to :data:`LOOP_JUMP_RATIO`)
+    at this decay rate, or None when even :data:`LOOP_JUMP_START` has none."""
+    from drake_cert.synthesis.switching import _largest_jump
+
+    ps = problem.solve(decay, LOOP_JUMP_START)
+    if ps is None:
+        return None
+    hi, lo = _largest_jump(ps), 1.0
+    while hi / lo > LOOP_JUMP_RATIO:
+        mid = math.sqrt(lo * hi)
+        trial = problem.solve(decay, mid)
+        if trial is None:
+            lo = mid
+        else:
+            ps, hi = trial, min(mid, _largest_jump(trial))
+    return ps

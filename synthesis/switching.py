@@ -63,7 +63,8 @@ JUMP_BISECTION_RATIO = 1.05  # mu bisection stops when hi / lo <= this
 class SwitchingMode:
     """Designs sharing one Lyapunov matrix in a ``"dwell"`` certificate.
 
-    ``designs``: their :func:`design_key` names; ``lyapunov_matrix``: P_m (4 x 4, symmetric;
+    ``designs``: their :func:`design_key` names; ``lyapunov_matrix``: P_m (4 x 4, or 5 x 5 for
+    the L1 loops' ``loop_modes``; symmetric;
     the modes' matrices share one scale, the least smallest eigenvalue among them is 1)."""
 
     designs: tuple[str, ...]
@@ -87,7 +88,12 @@ class SwitchingCertificate:
     gradient law, or none found); ``loop_decay_rate_per_s``: the rate lambda_z it proves on its
     grid; ``loop_law``: the adaptation law whose reference loops it covers;
     the matrix is stated on the steering coordinates ``[s, u - u_ff]`` (:data:`LOOP_STATE`), which
-    a switch leaves in place, so the L1 loops need no dwell;
+    a switch leaves in place, so the L1 loops need no dwell; ``loop_modes``: where the L1 loops
+    share no matrix, one 5 x 5 matrix per design (:func:`drake_cert.synthesis.loop_switching.
+    loop_dwell_matrices`), then ``loop_decay_rate_per_s`` is their common rate lambda_0,
+    ``loop_jump_factor`` mu_z the most a switch multiplies ``zeta' P zeta`` by and
+    ``loop_dwell_time_s`` = ``ln(mu_z) / (2 lambda_0)`` the average dwell they need (not
+    enforced by the car; each drive reports whether it kept it);
     ``solve_time_s``: wall time of the solve (informative: not checked, not saved).
     """
 
@@ -103,7 +109,15 @@ class SwitchingCertificate:
     loop_lyapunov_matrix: tuple[tuple[float, ...], ...] | None = None
     loop_decay_rate_per_s: float = 0.0
     loop_law: str = ""
+    loop_modes: tuple[SwitchingMode, ...] = ()
+    loop_jump_factor: float = 1.0
+    loop_dwell_time_s: float = 0.0
     solve_time_s: float = dataclasses.field(default=0.0, compare=False)
+
+
+def has_loop_certificate(certificate: SwitchingCertificate) -> bool:
+    """Whether the L1 loops carry a certificate: a common matrix or one per design."""
+    return certificate.loop_lyapunov_matrix is not None or bool(certificate.loop_modes)
 
 
 def design_key(design: ControllerDesign) -> str:
@@ -154,7 +168,7 @@ def _modes(vehicle, designs, speed_min_mps):
 
 
 def _decay_constraints(p, matrices, decay, margin):
-    eye = np.eye(4)
+    eye = np.eye(p.shape[0])
     out = []
     for m in matrices:
         lyap = m.T @ p + p @ m + 2.0 * decay * p
@@ -207,13 +221,13 @@ class _ModeProblem:
     ``P_m <= jump P_n`` for all m != n (a feasibility problem). Decay rate and jump are cvxpy
     Parameters (the problem is DPP: compiled once)."""
 
-    def __init__(self, modes, margin):
+    def __init__(self, modes, margin, size: int = 4):
         import cvxpy as cp
 
-        eye = np.eye(4)
+        eye = np.eye(size)
         self.decay = cp.Parameter(nonneg=True)
         self.jump = cp.Parameter(nonneg=True)
-        self.ps = [cp.Variable((4, 4), symmetric=True) for _ in modes]
+        self.ps = [cp.Variable((size, size), symmetric=True) for _ in modes]
         constraints = []
         for p, (_, mats) in zip(self.ps, modes, strict=True):
             constraints.append(p >> eye)
@@ -255,11 +269,24 @@ def with_loop_certificate(vehicle: VehicleParams, designs: list[ControllerDesign
     law = settings.controller.adaptation_law
     found = loop_lyapunov_matrix(vehicle, designs, settings.synthesis.speed_min_mps, law,
                                  settings.synthesis.lmi_margin)
-    if found is None:
+    if found is not None:
+        p, rate = found
+        return dataclasses.replace(certificate, loop_lyapunov_matrix=_as_rows(p),
+                                   loop_decay_rate_per_s=rate, loop_law=law)
+    from drake_cert.synthesis.loop_switching import loop_dwell_matrices
+
+    covered = [d for d in designs if d.has_safe_speed]
+    per_design = loop_dwell_matrices(vehicle, covered, settings.synthesis.speed_min_mps, law,
+                                     settings.synthesis.lmi_margin)
+    if per_design is None:
         return dataclasses.replace(certificate, loop_law=law)
-    p, rate = found
-    return dataclasses.replace(certificate, loop_lyapunov_matrix=_as_rows(p),
-                               loop_decay_rate_per_s=rate, loop_law=law)
+    ps, rate, mu = per_design
+    rate, mu = _round_down(rate), _round_up(mu)
+    return dataclasses.replace(
+        certificate, loop_decay_rate_per_s=rate, loop_law=law, loop_jump_factor=mu,
+        loop_dwell_time_s=_round_up(math.log(mu) / (2.0 * rate)) if mu > 1.0 else 0.0,
+        loop_modes=tuple(SwitchingMode((design_key(d),), _as_rows(p))
+                         for d, p in zip(covered, ps, strict=True)))
 
 
 def common_lyapunov_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
@@ -440,13 +467,12 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
     reference loops' certificate (``loop_switching_decay_per_s``: lambda_z, 0 when there is
     none)."""
     times = list(switch_times_s)
-    loop_missing = certificate.method != NONE and certificate.loop_lyapunov_matrix is None
+    loop_missing = certificate.method != NONE and not has_loop_certificate(certificate)
     out = {"switching_method": certificate.method,
            "switching_decay_per_s": certificate.decay_rate_per_s,
            "certified_average_dwell_s": certificate.dwell_time_s,
            "loop_switching_decay_per_s": (certificate.loop_decay_rate_per_s
-                                          if certificate.loop_lyapunov_matrix is not None
-                                          else 0.0)}
+                                          if has_loop_certificate(certificate) else 0.0)}
     if certificate.method == DWELL and certificate.dwell_time_s > 0:
         n0 = chatter_bound(times, 2.0 * certificate.dwell_time_s)
         out.update(chatter_bound_n0=n0, lyapunov_growth_bound=certificate.jump_factor ** n0,
@@ -459,6 +485,18 @@ def drive_switching_report(certificate: SwitchingCertificate, switch_times_s) ->
         out["switching_certificate_met"] = False
         out["switching_note"] = (GRADIENT_LOOP_NOTE if certificate.loop_law == "gradient"
                                  else LOOP_MISSING_NOTE)
+    elif certificate.loop_modes and certificate.loop_dwell_time_s > 0:
+        dwell = certificate.loop_dwell_time_s
+        n0 = chatter_bound(times, 2.0 * dwell)
+        out.update(loop_certified_average_dwell_s=dwell, loop_chatter_bound_n0=n0,
+                   loop_growth_bound=certificate.loop_jump_factor ** n0)
+        if chatter_bound(times, dwell) > 1.0:
+            out["switching_certificate_met"] = False
+            out["switching_note"] = (
+                f"the L1 loops share no Lyapunov matrix; their per-design certificate needs an "
+                f"average dwell of {dwell:.3g} s and the designs switched faster; they still decay "
+                f"at half their rate after a growth of at most {out['loop_growth_bound']:.3g} "
+                "(docs/design.md 5.6 (b))")
     return out
 
 
@@ -487,8 +525,15 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
         out["lyapunov_matrix"] = [list(row) for row in certificate.lyapunov_matrix]
     if certificate.loop_lyapunov_matrix is not None:
         out["loop_lyapunov_matrix"] = [list(row) for row in certificate.loop_lyapunov_matrix]
+    if has_loop_certificate(certificate):
         out["loop_decay_rate_per_s"] = float(certificate.loop_decay_rate_per_s)
         out["loop_state"] = LOOP_STATE
+    if certificate.loop_modes:
+        out["loop_modes"] = [{"designs": list(m.designs),
+                              "lyapunov_matrix": [list(row) for row in m.lyapunov_matrix]}
+                             for m in certificate.loop_modes]
+        out["loop_jump_factor"] = float(certificate.loop_jump_factor)
+        out["loop_dwell_time_s"] = float(certificate.loop_dwell_time_s)
     if certificate.loop_law:
         out["loop_law"] = certificate.loop_law
     if certificate.modes:
@@ -500,7 +545,8 @@ def certificate_to_dict(certificate: SwitchingCertificate) -> dict:
 
 _CERT_REQUIRED = ("family", "method", "designs_covered", "decay_rate_per_s", "dwell_time_s")
 _CERT_OPTIONAL = ("lyapunov_matrix", "modes", "jump_factor", "condition_number",
-                  "loop_lyapunov_matrix", "loop_decay_rate_per_s", "loop_law", "loop_state")
+                  "loop_lyapunov_matrix", "loop_decay_rate_per_s", "loop_law", "loop_state",
+                  "loop_modes", "loop_jump_factor", "loop_dwell_time_s")
 OLD_LOOP_MATRIX = ("{where}.loop_lyapunov_matrix was written by an older drake-cert for the "
                    "state [s, u_ad], before a switch carried the L1 estimate over; run "
                    "drake-cert synthesize again")
@@ -510,7 +556,8 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
     """Parse one certificate mapping; :class:`ValueError` naming ``where`` and the key."""
     if not isinstance(data, dict):
         raise ValueError(f"{where} must be a mapping")
-    if "loop_lyapunov_matrix" in data and data.get("loop_state") != LOOP_STATE:
+    loop_keys = ("loop_lyapunov_matrix", "loop_modes", "loop_jump_factor")
+    if any(k in data for k in loop_keys) and data.get("loop_state") != LOOP_STATE:
         raise ValueError(OLD_LOOP_MATRIX.format(where=where))
     unknown = sorted(set(data) - set(_CERT_REQUIRED) - set(_CERT_OPTIONAL))
     if unknown:
@@ -529,7 +576,8 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
     numbers = {}
     for key, default in (("decay_rate_per_s", None), ("dwell_time_s", None),
                          ("jump_factor", 1.0), ("condition_number", 1.0),
-                         ("loop_decay_rate_per_s", 0.0)):
+                         ("loop_decay_rate_per_s", 0.0), ("loop_jump_factor", 1.0),
+                         ("loop_dwell_time_s", 0.0)):
         value = data.get(key, default)
         if not isinstance(value, (int, float)) or isinstance(value, bool) or math.isnan(value):
             raise ValueError(f"{where}.{key} = {value!r} must be a number")
@@ -541,26 +589,34 @@ def certificate_from_dict(data, where: str) -> SwitchingCertificate:
     loop_law = data.get("loop_law", "")
     if not isinstance(loop_law, str):
         raise ValueError(f"{where}.loop_law must be a string")
-    modes = data.get("modes", [])
-    if not isinstance(modes, list):
-        raise ValueError(f"{where}.modes must be a list")
-    parsed_modes = []
-    for i, mode in enumerate(modes):
-        here = f"{where}.modes[{i}]"
-        if not isinstance(mode, dict) or set(mode) != {"designs", "lyapunov_matrix"}:
-            raise ValueError(f"{here} must be a mapping with designs and lyapunov_matrix")
-        if not isinstance(mode["designs"], list) or not all(isinstance(x, str)
-                                                            for x in mode["designs"]):
-            raise ValueError(f"{here}.designs must be a list of design names")
-        parsed_modes.append(SwitchingMode(tuple(mode["designs"]),
-                                          _matrix(mode["lyapunov_matrix"],
-                                                  f"{here}.lyapunov_matrix")))
+    parsed_modes = _modes_from(data.get("modes", []), f"{where}.modes", 4)
+    loop_modes = _modes_from(data.get("loop_modes", []), f"{where}.loop_modes", 5)
     return SwitchingCertificate(
         family=data["family"], method=data["method"], designs_covered=tuple(covered),
         decay_rate_per_s=numbers["decay_rate_per_s"], dwell_time_s=numbers["dwell_time_s"],
         lyapunov_matrix=matrix, modes=tuple(parsed_modes), jump_factor=numbers["jump_factor"],
         condition_number=numbers["condition_number"], loop_lyapunov_matrix=loop,
-        loop_decay_rate_per_s=numbers["loop_decay_rate_per_s"], loop_law=loop_law)
+        loop_decay_rate_per_s=numbers["loop_decay_rate_per_s"], loop_law=loop_law,
+        loop_modes=loop_modes, loop_jump_factor=numbers["loop_jump_factor"],
+        loop_dwell_time_s=numbers["loop_dwell_time_s"])
+
+
+def _modes_from(modes, where: str, size: int) -> tuple[SwitchingMode, ...]:
+    """Parse a list of ``{designs, lyapunov_matrix}`` (size x size); ValueError naming it."""
+    if not isinstance(modes, list):
+        raise ValueError(f"{where} must be a list")
+    parsed = []
+    for i, mode in enumerate(modes):
+        here = f"{where}[{i}]"
+        if not isinstance(mode, dict) or set(mode) != {"designs", "lyapunov_matrix"}:
+            raise ValueError(f"{here} must be a mapping with designs and lyapunov_matrix")
+        if not isinstance(mode["designs"], list) or not all(isinstance(x, str)
+                                                            for x in mode["designs"]):
+            raise ValueError(f"{here}.designs must be a list of design names")
+        parsed.append(SwitchingMode(tuple(mode["designs"]),
+                                    _matrix(mode["lyapunov_matrix"], f"{here}.lyapunov_matrix",
+                                            size)))
+    return tuple(parsed)
 
 
 def _matrix(rows, where: str, size: int = 4) -> tuple[tuple[float, ...], ...]:

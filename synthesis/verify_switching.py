@@ -224,10 +224,16 @@ def _on_steering(reference: np.ndarray, k_m: np.ndarray) -> np.ndarray:
 
 def _loop_failures(covered, settings, speed_min_mps, certificate, name,
                    reference_matrix) -> list[str]:
-    """The L1 loops' matrix, when stored: for the law of ``settings`` (when known), finite,
-    symmetric, positive definite, and its rate reached at every check point; a loop decay
-    claimed without a matrix is a failure."""
-    if certificate.loop_lyapunov_matrix is None:
+    """The L1 loops' matrix (or per-design matrices), when stored: for the law of ``settings``
+    (when known), finite, symmetric, positive definite, and its rate reached at every check
+    point of its designs; for per-design matrices also every design covered, the stored jump
+    factor at least ``lambda_max(P_j^-1 P_i)`` and the dwell at least ``ln(mu) / (2 lambda)``.
+    A loop decay claimed without a matrix is a failure."""
+    stored = ({"loop_lyapunov_matrix": certificate.loop_lyapunov_matrix}
+              if certificate.loop_lyapunov_matrix is not None else
+              {f"loop_modes[{i}]": m.lyapunov_matrix
+               for i, m in enumerate(certificate.loop_modes)})
+    if not stored:
         if certificate.loop_decay_rate_per_s > 0.0:
             return [f"{name}: claims loop decay {certificate.loop_decay_rate_per_s}/s for the L1 "
                     "loops but stores no loop matrix that proves it"]
@@ -239,28 +245,60 @@ def _loop_failures(covered, settings, speed_min_mps, certificate, name,
     if certificate.loop_decay_rate_per_s <= 0.0:
         return [f"{name}: loop_decay_rate_per_s = {certificate.loop_decay_rate_per_s} must be "
                 "positive"]
-    matrices, failures = _checked_matrices({"loop_lyapunov_matrix":
-                                            certificate.loop_lyapunov_matrix}, 5, name)
+    matrices, failures = _checked_matrices(stored, 5, name)
     if failures:
         return failures
     if reference_matrix is None:
         return [f"{name}: a loop matrix is stored but no reference system was given to check it"]
-    p = matrices["loop_lyapunov_matrix"]
+    if certificate.loop_lyapunov_matrix is not None:
+        of_design = {design_key(d): matrices["loop_lyapunov_matrix"] for d in covered}
+    else:
+        of_design = {key: matrices[f"loop_modes[{i}]"]
+                     for i, m in enumerate(certificate.loop_modes) for key in m.designs}
+        missing = [design_key(d) for d in covered if design_key(d) not in of_design]
+        if missing:
+            return [f"{name}: loop_modes cover no matrix for design {missing[0]}"]
     for d in covered:
-        key = design_key(d)
-        for c in d.certified_interval:
-            for v in check_speeds(d, speed_min_mps):
-                try:
-                    m = _on_steering(reference_matrix(d, c, v), d.k_m_array)
-                except np.linalg.LinAlgError:  # e.g. a gain that leaves A_m singular
-                    return [f"{name}: design {key} has no reference loop to check the loop "
-                            "matrix on (its nominal loop A_m is singular)"]
-                if not np.all(np.isfinite(m)):
-                    return [f"{name}: design {key}'s reference loop is not finite at "
-                            f"C = {c:.6g} N/rad, V = {v:.4g} m/s"]
-                rate = certified_rate(p, m)
-                if rate < certificate.loop_decay_rate_per_s - LOOP_TOLERANCE:
-                    return [f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
-                            f"{certificate.loop_decay_rate_per_s}/s for design {key} at "
-                            f"C = {c:.6g} N/rad, V = {v:.4g} m/s"]
+        failure = _loop_rate_failure(d, of_design[design_key(d)], reference_matrix,
+                                     speed_min_mps, certificate, name)
+        if failure:
+            return [failure]
+    if certificate.loop_modes:
+        return _loop_dwell_failures(list(of_design.values()), certificate, name)
+    return []
+
+
+def _loop_rate_failure(design, p, reference_matrix, speed_min_mps, certificate, name) -> str:
+    """'' when ``p`` proves the stored loop rate at both ends of ``design``'s interval and every
+    check speed; else the failure."""
+    key = design_key(design)
+    for c in design.certified_interval:
+        for v in check_speeds(design, speed_min_mps):
+            try:
+                m = _on_steering(reference_matrix(design, c, v), design.k_m_array)
+            except np.linalg.LinAlgError:  # e.g. a gain that leaves A_m singular
+                return (f"{name}: design {key} has no reference loop to check the loop "
+                        "matrix on (its nominal loop A_m is singular)")
+            if not np.all(np.isfinite(m)):
+                return (f"{name}: design {key}'s reference loop is not finite at "
+                        f"C = {c:.6g} N/rad, V = {v:.4g} m/s")
+            rate = certified_rate(p, m)
+            if rate < certificate.loop_decay_rate_per_s - LOOP_TOLERANCE:
+                return (f"{name}: the loop matrix proves decay {rate:.6g}/s < the stored "
+                        f"{certificate.loop_decay_rate_per_s}/s for design {key} at "
+                        f"C = {c:.6g} N/rad, V = {v:.4g} m/s")
+    return ""
+
+
+def _loop_dwell_failures(ps: list[np.ndarray], certificate, name) -> list[str]:
+    """The per-design loop matrices' jump factor and the dwell it needs, recomputed."""
+    mu = max([1.0] + [float(scipy.linalg.eigh(a, b, eigvals_only=True).max())
+                      for i, a in enumerate(ps) for j, b in enumerate(ps) if i != j])
+    if mu > certificate.loop_jump_factor * (1.0 + JUMP_TOLERANCE):
+        return [f"{name}: the loop matrices jump by {mu:.6g} at a switch > the stored "
+                f"loop_jump_factor {certificate.loop_jump_factor}"]
+    need = math.log(mu) / (2.0 * certificate.loop_decay_rate_per_s) if mu > 1.0 else 0.0
+    if certificate.loop_dwell_time_s < need * (1.0 - 1e-9):
+        return [f"{name}: loop_dwell_time_s = {certificate.loop_dwell_time_s} s is below "
+                f"ln(mu_z) / (2 lambda_z) = {need:.6g} s"]
     return []

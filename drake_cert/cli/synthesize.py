@@ -110,11 +110,16 @@ def format_switching(certificates) -> str:
             continue
         what = ("common Lyapunov matrix, any switching rate" if c.method == "common" else
                 f"average dwell {c.dwell_time_s:.3g} s (not enforced by the car)")
-        loops = (f"L1 loops: common matrix on [s, u - u_ff], decay "
-                 f"{c.loop_decay_rate_per_s:.3g}/s, any switching rate (the estimate carried "
-                 "across a switch)"
-                 if c.loop_lyapunov_matrix is not None else
-                 "L1 loops: no common matrix, switching among them NOT certified")
+        if c.loop_lyapunov_matrix is not None:
+            loops = (f"L1 loops: common matrix on [s, u - u_ff], decay "
+                     f"{c.loop_decay_rate_per_s:.3g}/s, any switching rate (the estimate carried "
+                     "across a switch)")
+        elif c.loop_modes:
+            loops = (f"L1 loops: no common matrix; one per design, decay "
+                     f"{c.loop_decay_rate_per_s:.3g}/s, average dwell {c.loop_dwell_time_s:.3g} s "
+                     "(not enforced by the car; each drive says whether it kept it)")
+        else:
+            loops = "L1 loops: no common matrix, switching among them NOT certified"
         lines.append(f"switching ({c.family}): state-feedback loops {c.method}: {what}; decay "
                      f"{c.decay_rate_per_s:.3g}/s over {len(c.designs_covered)} designs; {loops}")
     return "\n".join(lines)
