@@ -43,6 +43,15 @@ def tape_bytes(results, path: str) -> bytes:
     return ("\n".join(lines) + "\n").encode()
 
 
+def rear_ratio(summary: dict) -> float:
+    """The rear tire's stiffness over the front's for the drive's vehicle (1 for one scale):
+    every interval of a drive is the front tire's C; the rear tire's is this times it."""
+    vehicle = summary.get("vehicle") or {}
+    front = vehicle.get("tire_stiffness_scale")
+    rear = vehicle.get("rear_tire_stiffness_scale")
+    return float(rear) / float(front) if front and rear else 1.0
+
+
 def drive_figure_png(results) -> bytes:
     """Lateral offset (with the lane margin), speed (with the command and the safe speed of the
     design in force) and the design in force against the true stiffness under the car (the
@@ -74,7 +83,17 @@ def drive_figure_png(results) -> bytes:
         for edge in (0, 1):
             ax.step(t, tape.interval_n_per_rad[:, edge] / 1e3, where="post", color="tab:orange",
                     lw=0.8, ls=":", label=None if edge else "latest decision (look-ahead)")
-        ax.plot(t, tape.true_stiffness_n_per_rad / 1e3, "k", lw=1, label="true C (at the car)")
+        front_label = " (front tire)" if rear_ratio(s) != 1.0 else ""
+        ax.plot(t, tape.true_stiffness_n_per_rad / 1e3, "k", lw=1,
+                label=f"true C{front_label} (at the car)")
+        if rear_ratio(s) != 1.0:  # a per-axle vehicle: the rear tire's interval and truth too
+            rho = rear_ratio(s)
+            ax.fill_between(t, rho * tape.design_interval_n_per_rad[:, 0] / 1e3,
+                            rho * tape.design_interval_n_per_rad[:, 1] / 1e3, step="post",
+                            alpha=0.15, color="tab:purple",
+                            label=f"design in force, rear tire ({rho:.3g} C)")
+            ax.plot(t, rho * tape.true_stiffness_n_per_rad / 1e3, "k--", lw=0.8,
+                    label="true rear tire stiffness")
         covers = 100 * (s["design_covers_true_fraction"] or 0.0)
         ax.set_title(f"design in force holds true C {covers:.1f}% of the time; unprotected "
                      f"{s['time_unprotected_s']:.2f} s", fontsize=8)

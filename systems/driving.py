@@ -1070,11 +1070,23 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
         "envelope_time_fraction": envelope_time,
         "lead_in_m": float(lead_in_m),
         "design_switches": int(np.count_nonzero(np.diff(tape.design_index))),
+        "design_intervals_n_per_rad": designs_in_force(tape),
         "mean_samples_per_tick": float(np.mean(ticks.samples)) if len(ticks.samples) else None,
         "max_samples_per_tick": int(np.max(ticks.samples)) if len(ticks.samples) else 0,
         **_perception_settings(scenario, seed_source),
         **(guarantee or {}),
     }
+
+
+def designs_in_force(tape: DriveTape) -> list[list[float]]:
+    """The stiffness intervals (N/rad, the front tire's C) of the designs that were in force,
+    in the order they first took over."""
+    out: list[list[float]] = []
+    for lo, hi in tape.design_interval_n_per_rad:
+        row = [float(lo), float(hi)]
+        if np.all(np.isfinite(row)) and row not in out:
+            out.append(row)
+    return out
 
 
 def _route_speed_figures(tape: DriveTape, envelope_index: int | None

@@ -96,6 +96,10 @@ def test_certified_car_stays_in_lane_where_the_base_car_is_fooled_on_snow(under_
     assert certified.summary["design_switches"] > 0
     assert certified.summary["switching_certificate_met"] is True
     assert "switching_note" not in certified.summary
+    # the designs that were in force, in the order they took over (the front tire's C)
+    intervals = certified.summary["design_intervals_n_per_rad"]
+    assert len(intervals) >= 2 and len({tuple(r) for r in intervals}) == len(intervals)
+    assert intervals[0] == [float(x) for x in certified.tape.design_interval_n_per_rad[0]]
 
 
 def test_under_an_efficiency_attack_the_certified_car_keeps_moving(setup):

@@ -150,3 +150,22 @@ def test_a_drives_text_summary_names_both_axles_tires():
     assert "tire stiffness front x0.8311, rear x0.4869" in text
     one = {**summary, "vehicle": dataclasses.asdict(load_vehicle())}
     assert "tire stiffness x1\n" in format_summaries([one]) + "\n"
+    assert "per axle" not in format_summaries([one])
+
+
+def test_a_per_axle_drive_shows_each_design_interval_for_both_tires():
+    """Every interval of a drive is the front tire's C; for a per-axle vehicle the text and
+    the plot show the rear tire's too (rho C, rho = rear scale / front scale)."""
+    from drake_cert.cli.drive import format_summaries
+    from drake_cert.systems.drive_plot import rear_ratio
+
+    summary = {"scenario": "dry_to_snow", "seed": 1, "pipeline": "certified",
+               "vehicle": dataclasses.asdict(ESCORT),
+               "design_intervals_n_per_rad": [[83_112.0, 99_734.4], [16_622.4, 99_734.4]]}
+    rho = 0.4869 / 0.8311
+    assert rear_ratio(summary) == pytest.approx(rho)
+    text = format_summaries([summary])
+    assert f"the rear tire's is {rho:.4g} C" in text
+    assert "design [83.1, 99.7] kN/rad front, [48.7, 58.4] rear" in text
+    assert "design [16.6, 99.7] kN/rad front, [9.7, 58.4] rear" in text
+    assert rear_ratio({"vehicle": dataclasses.asdict(load_vehicle())}) == 1.0

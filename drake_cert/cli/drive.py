@@ -253,6 +253,17 @@ def _drive_with_bar(choices: dict, common: dict, position: int):
                               **common)
 
 
+def per_axle_design_lines(summaries, ratio: float) -> list[str]:
+    """For a per-axle vehicle: the design intervals each drive used, front and rear tire
+    (kN/rad), from the summary's ``design_intervals_n_per_rad`` when present."""
+    lines = []
+    for s in summaries:
+        for lo, hi in s.get("design_intervals_n_per_rad") or ():
+            lines.append(f"  {s['pipeline']}: design [{lo / 1e3:.1f}, {hi / 1e3:.1f}] kN/rad front, "
+                         f"[{ratio * lo / 1e3:.1f}, {ratio * hi / 1e3:.1f}] rear")
+    return lines
+
+
 def format_summaries(summaries: list[dict]) -> str:
     """A small side-by-side table of the drives."""
     keys = (("pipeline", "{}"), ("attack", "{}"), ("left_lane", "{}"),
@@ -282,6 +293,10 @@ def format_summaries(summaries: list[dict]) -> str:
         tires = f"x{front:g}" if rear == front else f"front x{front:g}, rear x{rear:g}"
         lines.append(f"vehicle: mass {vehicle['mass_kg']:g} kg, lf {vehicle['lf_m']:g} m, "
                      f"lr {vehicle['lr_m']:g} m, tire stiffness {tires}")
+        if rear != front:
+            lines.append(f"  per axle: every interval is the front tire's C; the rear tire's is "
+                         f"{rear / front:.4g} C (--plot shows both)")
+            lines += per_axle_design_lines(summaries, rear / front)
     for key, fmt in keys:
         cells = []
         for s in summaries:
