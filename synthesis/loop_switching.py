@@ -41,6 +41,7 @@ from drake_cert.synthesis.conditions import GRADIENT, reference_system_matrix
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.joint_gains import GAIN_BOX_SPEED_MARGIN_MPS
 from drake_cert.synthesis.lyapunov_rate import certified_rate
+from drake_cert.synthesis.mode_lyapunov import ModeProblem, largest_jump, least_jump_matrices
 
 LOOP_SPEED_STEP_MPS = 0.25  # speed grid of the loop certificate (as condition 5.3b's pc grid)
 # the loops are certified this far above each design's safe speed (m/s), as its state-feedback
@@ -178,8 +179,6 @@ def loop_dwell_matrices(vehicle: VehicleParams, designs: list[ControllerDesign],
     (geometric, to :data:`LOOP_JUMP_RATIO`) and the pair with the least dwell kept. The returned
     lambda_0 and mu are what the matrices prove (a shared scale: the smallest eigenvalue
     among them is 1)."""
-    from drake_cert.synthesis.switching import _largest_jump, _ModeProblem
-
     covered = [d for d in designs if d.has_safe_speed]
     if not covered or law == GRADIENT:
         return None
@@ -195,8 +194,9 @@ def loop_dwell_matrices(vehicle: VehicleParams, designs: list[ControllerDesign],
     best = None
     for decay in LOOP_DWELL_DECAYS:
         for _ in range(LOOP_ROUNDS):
-            found = _bisected_modes(_ModeProblem([((), mats) for mats in chosen], lmi_margin, 5),
-                                    decay)
+            found = least_jump_matrices(ModeProblem([((), mats) for mats in chosen],
+                                                    lmi_margin, 5),
+                                        decay, LOOP_JUMP_START, LOOP_JUMP_RATIO)
             if found is None:
                 break
             shortfalls = [[m for m in grid if certified_rate(p, m) <= 0.5 * decay]
@@ -206,7 +206,7 @@ def loop_dwell_matrices(vehicle: VehicleParams, designs: list[ControllerDesign],
                 ps = [p / scale for p in found]
                 rate = min(certified_rate(p, m) for p, grid in zip(ps, grids, strict=True)
                            for m in grid)
-                mu = max(_largest_jump(ps), 1.0)
+                mu = max(largest_jump(ps), 1.0)
                 dwell = math.log(mu) / (2.0 * rate)
                 if best is None or dwell < best[0]:
                     best = (dwell, ps, rate, mu)
@@ -215,22 +215,3 @@ def loop_dwell_matrices(vehicle: VehicleParams, designs: list[ControllerDesign],
     if best is None:
         return None
     return best[1], best[2], best[3]
-
-
-def _bisected_modes(problem, decay: float) -> list[np.ndarray] | None:
-    """The matrices at the least jump factor found by bisection (to :data:`LOOP_JUMP_RATIO`)
-    at this decay rate, or None when even :data:`LOOP_JUMP_START` has none."""
-    from drake_cert.synthesis.switching import _largest_jump
-
-    ps = problem.solve(decay, LOOP_JUMP_START)
-    if ps is None:
-        return None
-    hi, lo = _largest_jump(ps), 1.0
-    while hi / lo > LOOP_JUMP_RATIO:
-        mid = math.sqrt(lo * hi)
-        trial = problem.solve(decay, mid)
-        if trial is None:
-            lo = mid
-        else:
-            ps, hi = trial, min(mid, _largest_jump(trial))
-    return ps

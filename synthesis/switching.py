@@ -31,18 +31,22 @@ verify rechecks it its own way, without any solver
 """
 
 import dataclasses
-import itertools
 import math
 import time
 
 import numpy as np
-import scipy.linalg
 
 from drake_cert.config import ConditionsTable, Settings, SynthesisSettings, VehicleParams
 from drake_cert.dynamics import lateral_error_dynamics
 from drake_cert.errors import InfeasibleDesign
 from drake_cert.synthesis.design import ControllerDesign
 from drake_cert.synthesis.lyapunov_rate import certified_rate
+from drake_cert.synthesis.mode_lyapunov import (
+    ModeProblem,
+    decay_constraints,
+    largest_jump,
+    least_jump_matrices,
+)
 
 COMMON = "common"
 DWELL = "dwell"
@@ -150,12 +154,6 @@ def corner_matrices(vehicle: VehicleParams, design: ControllerDesign,
     return out
 
 
-def jump_factor(p_from: np.ndarray, p_to: np.ndarray) -> float:
-    """``lambda_max(P_to^-1 P_from)``: the least mu with ``P_from <= mu P_to`` (the growth of
-    ``V`` at a switch from the mode of ``p_from`` to that of ``p_to``)."""
-    return float(scipy.linalg.eigh(p_from, p_to, eigvals_only=True).max())
-
-
 def _modes(vehicle, designs, speed_min_mps):
     """Covered designs grouped by identical corner matrices: [(keys, matrices)]."""
     groups: dict = {}
@@ -165,15 +163,6 @@ def _modes(vehicle, designs, speed_min_mps):
             groups[key] = ([], corner_matrices(vehicle, d, speed_min_mps))
         groups[key][0].append(design_key(d))
     return [(tuple(keys), mats) for keys, mats in groups.values()]
-
-
-def _decay_constraints(p, matrices, decay, margin):
-    eye = np.eye(p.shape[0])
-    out = []
-    for m in matrices:
-        lyap = m.T @ p + p @ m + 2.0 * decay * p
-        out.append(0.5 * (lyap + lyap.T) << -margin * eye)
-    return out
 
 
 class _CommonProblem:
@@ -188,7 +177,7 @@ class _CommonProblem:
         self.p = cp.Variable((4, 4), symmetric=True)
         t = cp.Variable()
         constraints = [self.p >> np.eye(4), self.p << t * np.eye(4)]
-        constraints += _decay_constraints(self.p, matrices, self.decay, margin)
+        constraints += decay_constraints(self.p, matrices, self.decay, margin)
         self.problem = cp.Problem(cp.Minimize(t), constraints)
 
     def solve(self, decay):
@@ -214,41 +203,6 @@ class _CommonProblem:
 def _normalised(p: np.ndarray) -> np.ndarray:
     p = 0.5 * (p + p.T)
     return p / float(np.linalg.eigvalsh(p).min())
-
-
-class _ModeProblem:
-    """Joint ``P_m >= I``, each with the decay LMI on its mode's matrices, and
-    ``P_m <= jump P_n`` for all m != n (a feasibility problem). Decay rate and jump are cvxpy
-    Parameters (the problem is DPP: compiled once)."""
-
-    def __init__(self, modes, margin, size: int = 4):
-        import cvxpy as cp
-
-        eye = np.eye(size)
-        self.decay = cp.Parameter(nonneg=True)
-        self.jump = cp.Parameter(nonneg=True)
-        self.ps = [cp.Variable((size, size), symmetric=True) for _ in modes]
-        constraints = []
-        for p, (_, mats) in zip(self.ps, modes, strict=True):
-            constraints.append(p >> eye)
-            constraints += _decay_constraints(p, mats, self.decay, margin)
-        constraints += [self.ps[i] << self.jump * self.ps[j]
-                        for i, j in itertools.permutations(range(len(self.ps)), 2)]
-        self.problem = cp.Problem(cp.Minimize(0), constraints)
-
-    def solve(self, decay, jump):
-        """The matrices P_m (not normalised: their ratios matter), or None."""
-        from drake_cert.synthesis.gains import solve_sdp
-
-        self.decay.value, self.jump.value = decay, jump
-        if not solve_sdp(self.problem) or any(p.value is None for p in self.ps):
-            return None
-        return [0.5 * (p.value + p.value.T) for p in self.ps]
-
-
-def _largest_jump(ps) -> float:
-    return max((jump_factor(ps[i], ps[j]) for i, j in itertools.permutations(range(len(ps)), 2)),
-               default=1.0)
 
 
 def _as_rows(p: np.ndarray) -> tuple[tuple[float, ...], ...]:
@@ -358,22 +312,14 @@ def dwell_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
     if not covered:
         return SwitchingCertificate(family, NONE, (), 0.0, 0.0)
     modes = modes if modes is not None else _modes(vehicle, covered, syn.speed_min_mps)
-    problem = _ModeProblem(modes, syn.lmi_margin)
+    problem = ModeProblem(modes, syn.lmi_margin)
     best = None
     for fraction in DWELL_DECAY_FRACTIONS:
         decay = fraction * syn.decay_rate
-        ps = problem.solve(decay, JUMP_START)
+        ps = least_jump_matrices(problem, decay, JUMP_START, JUMP_BISECTION_RATIO)
         if ps is None:
             continue
-        hi, lo = _largest_jump(ps), 1.0
-        while hi / lo > JUMP_BISECTION_RATIO:
-            mid = math.sqrt(lo * hi)
-            trial = problem.solve(decay, mid)
-            if trial is None:
-                lo = mid
-            else:
-                ps, hi = trial, min(mid, _largest_jump(trial))
-        dwell = math.log(max(hi, 1.0)) / (2.0 * decay)
+        dwell = math.log(max(largest_jump(ps), 1.0)) / (2.0 * decay)
         if best is None or dwell < best[0]:
             best = (dwell, ps)
     if best is None:
@@ -383,7 +329,7 @@ def dwell_certificate(vehicle: VehicleParams, designs: list[ControllerDesign],
     ps = [p / scale for p in best[1]]  # the ratios P_n^-1 P_m are the jump factors
     decay = _round_down(min(certified_rate(p, m) for p, (_, mats) in zip(ps, modes, strict=True)
                             for m in mats))
-    mu = _round_up(_largest_jump(ps))
+    mu = _round_up(largest_jump(ps))
     dwell = _round_up(math.log(mu) / (2.0 * decay)) if decay > 0.0 else math.inf
     return SwitchingCertificate(
         family, DWELL, tuple(design_key(d) for d in covered), decay, dwell,

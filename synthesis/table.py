@@ -317,8 +317,9 @@ def with_switchable_l1_loops(vehicle: VehicleParams, conditions: ConditionsTable
     with the filter gain capped at the fractions :data:`FILTER_GAIN_CAP_FRACTIONS` of
     ``filter_gain_max``, largest first, until the loops share a matrix: a slower safe speed
     where the L1 condition binds, for a switching certificate at any rate. Each change is
-    recorded in ``cache.capped``; when no cap helps the designs are kept (and the preset's
-    certificate says its L1 loops are not certified).
+    recorded in ``cache.capped``; when no cap helps the designs are kept, and the preset's
+    certificate gives its L1 loops one matrix per design with the average dwell they need
+    (:func:`drake_cert.synthesis.loop_switching.loop_dwell_matrices`), or none.
     """
     from drake_cert.synthesis.conditions import PIECEWISE_CONSTANT
     from drake_cert.synthesis.loop_switching import loop_lyapunov_matrix

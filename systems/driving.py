@@ -1081,12 +1081,12 @@ def summarize_drive(tape: DriveTape, ticks: TickLog, *, scenario: Scenario, rout
 def designs_in_force(tape: DriveTape) -> list[list[float]]:
     """The stiffness intervals (N/rad, the front tire's C) of the designs that were in force,
     in the order they first took over."""
-    out: list[list[float]] = []
-    for lo, hi in tape.design_interval_n_per_rad:
-        row = [float(lo), float(hi)]
-        if np.all(np.isfinite(row)) and row not in out:
-            out.append(row)
-    return out
+    rows = np.asarray(tape.design_interval_n_per_rad, dtype=float).reshape(-1, 2)
+    rows = rows[np.all(np.isfinite(rows), axis=1)]
+    if not len(rows):
+        return []
+    unique, first = np.unique(rows, axis=0, return_index=True)
+    return [[float(lo), float(hi)] for lo, hi in unique[np.argsort(first)]]
 
 
 def _route_speed_figures(tape: DriveTape, envelope_index: int | None

@@ -17,6 +17,7 @@ import pytest
 import yaml
 
 from drake_cert.config import load_conditions, load_settings, load_vehicle
+from drake_cert.data import __file__ as data_init
 from drake_cert.io import provenance
 from drake_cert.synthesis.design_io import (
     DesignTable,
@@ -26,7 +27,6 @@ from drake_cert.synthesis.design_io import (
 )
 from drake_cert.synthesis.table import DesignCache, synthesize_table
 from drake_cert.synthesis.verify import verify_design_table
-from drake_cert.data import __file__ as data_init
 
 VEHICLES = __import__("pathlib").Path(data_init).parent / "vehicles"
 

@@ -259,8 +259,8 @@ def per_axle_design_lines(summaries, ratio: float) -> list[str]:
     lines = []
     for s in summaries:
         for lo, hi in s.get("design_intervals_n_per_rad") or ():
-            lines.append(f"  {s['pipeline']}: design [{lo / 1e3:.1f}, {hi / 1e3:.1f}] kN/rad front, "
-                         f"[{ratio * lo / 1e3:.1f}, {ratio * hi / 1e3:.1f}] rear")
+            lines.append(f"  {s['pipeline']}: design [{lo / 1e3:.1f}, {hi / 1e3:.1f}] kN/rad "
+                         f"front, [{ratio * lo / 1e3:.1f}, {ratio * hi / 1e3:.1f}] rear")
     return lines
 
 
