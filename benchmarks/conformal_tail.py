@@ -8,8 +8,9 @@ shipped classifier on the drive's calibration split (torch, fp32, ``--threads``)
 stream per frame from ``--seed``; nothing is cached or written.
 
 Run: ``.venv/bin/python benchmarks/conformal_tail.py [--preset robotcar-like] [--sigma 1]
-[--n 1000] [--frames-per-class 150] [--eps 1]`` (about 3 min for robotcar-like at n = 1000 on 2
-cores).
+[--n 1000] [--frames-per-class 150] [--eps 1] [--model FILE] [--split test]`` (``--model``: a
+candidate classifier file instead of the shipped one; ``--split test``: held-out frames)
+(about 3 min for robotcar-like at n = 1000 on 2 cores).
 """
 
 import argparse
@@ -27,7 +28,7 @@ from drake_cert.certification.conformal import (
 from drake_cert.certification.sampler import make_generator
 from drake_cert.config import load_conditions
 from drake_cert.perception.datasets import load_split
-from drake_cert.perception.models import load_model
+from drake_cert.perception.models import load_model, load_model_file
 
 ALPHA_CS = (0.008, 0.02, 0.05)
 
@@ -41,20 +42,27 @@ def main() -> None:
     parser.add_argument("--eps", type=float, default=1.0)
     parser.add_argument("--threads", type=int, default=2)
     parser.add_argument("--seed", type=int, default=1000)
+    parser.add_argument("--model", default=None,
+                        help="a candidate classifier file (default: the shipped model)")
+    parser.add_argument("--split", choices=("calibration", "test"), default="calibration",
+                        help="whose frames: the drive's calibration split or held-out test")
     args = parser.parse_args()
     torch.set_num_threads(args.threads)
     conditions = load_conditions()
     names = [c.name for c in conditions.preset_conditions(args.preset)]
-    cal = load_split(args.preset, "calibration", conditions=conditions,
+    cal = load_split(args.preset, args.split, conditions=conditions,
                      frames_per_class=args.frames_per_class)
-    classifier = SmoothedClassifier(load_model(args.preset, "classify", args.sigma),
-                                    len(names), args.sigma)
+    model = (load_model_file(args.model) if args.model
+             else load_model(args.preset, "classify", args.sigma))
+    classifier = SmoothedClassifier(model, len(names), args.sigma)
     start = time.perf_counter()
     own = np.array([classifier.sample_counts(cal.images[i], args.n, 250,
                                              make_generator(args.seed + i, classifier.device))
                     [int(cal.labels[i])] for i in range(len(cal.labels))])
-    print(f"{args.preset}, sigma {args.sigma:g}, {len(cal.labels)} calibration frames, n = "
-          f"{args.n}, fp32 torch, {args.threads} thread(s): {time.perf_counter() - start:.0f} s")
+    print(f"{args.preset}, sigma {args.sigma:g}, {args.model or 'shipped model'} "
+          f"(training {model.meta.get('training')}, width {getattr(getattr(model, 'backbone', model), 'width', '?')}), "
+          f"{len(cal.labels)} {args.split} frames, n = {args.n}, fp32 torch, {args.threads} "
+          f"thread(s): {time.perf_counter() - start:.0f} s")
     scores = calibration_scores(own, args.n)
     calibrations = {}
     for alpha_c in ALPHA_CS:

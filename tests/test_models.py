@@ -22,7 +22,10 @@ from drake_cert.perception.training import (
     evaluate_accuracy,
     evaluate_mse,
     fit_regressor,
+    tail_config,
+    tail_loss,
     train_classifier,
+    training_method,
 )
 
 TINY = TrainConfig(width=8, batch_size=32, epochs=8)
@@ -84,10 +87,32 @@ def test_consistency_loss_is_cross_entropy_plus_lambda_kl_plus_eta_entropy():
     assert float(consistency_loss(other, labels, copies=2, lam=1.0, eta=0.0)) > float(plain)
 
 
+def test_the_tail_loss_mixes_the_mean_with_the_mean_of_the_worst_frames():
+    """(1 - beta) mean CE + beta mean of the worst ceil(q B) per-frame CEs (the empirical CVaR):
+    beta = 0 is cross-entropy, q = 1 is cross-entropy too, and the worst frames weigh more."""
+    torch.manual_seed(0)
+    logits = torch.randn(8, 4)
+    labels = torch.tensor([0, 1, 2, 3, 0, 1, 2, 3])
+    per_frame = torch.nn.functional.cross_entropy(logits, labels, reduction="none")
+    ce = per_frame.mean()
+    worst = per_frame.sort(descending=True).values[:2].mean()  # ceil(0.25 * 8) = 2
+    assert float(tail_loss(logits, labels, fraction=0.25, weight=0.0)) == pytest.approx(float(ce))
+    assert float(tail_loss(logits, labels, fraction=1.0, weight=0.7)) == pytest.approx(float(ce))
+    assert float(tail_loss(logits, labels, fraction=0.25, weight=0.5)) == \
+        pytest.approx(float(0.5 * ce + 0.5 * worst))
+    assert float(worst) > float(ce)
+    assert training_method(tail_config(0.25, 0.5)) == {"method": "tail", "fraction": 0.25,
+                                                       "weight": 0.5}
+
+
 @pytest.mark.parametrize("bad", [dict(method="smoothadv"), dict(method="consistency", copies=1),
                                  dict(method="consistency", copies=2,
                                       consistency_lambda=-1.0),
-                                 dict(method="gaussian", copies=2)])
+                                 dict(method="gaussian", copies=2),
+                                 dict(method="tail", tail_fraction=0.0, tail_weight=0.5),
+                                 dict(method="tail", tail_fraction=0.25, tail_weight=1.5),
+                                 dict(method="tail", tail_fraction=0.25, copies=2),
+                                 dict(method="gaussian", tail_fraction=0.25)])
 def test_a_bad_training_method_is_a_config_error(bad):
     with pytest.raises(ConfigError):
         TrainConfig(**bad)

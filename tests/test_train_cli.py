@@ -96,10 +96,25 @@ def test_consistency_training_is_recorded_in_the_file_the_manifest_and_certify(c
     assert summary["training"]["method"] == "consistency"
 
 
+def test_tail_training_at_another_width_is_recorded_in_the_file(capsys, tmp_path):
+    from drake_cert.perception.models import training_of
+
+    root = str(tmp_path)
+    assert cli.main(["train", *TINY, "--sigma", "0.25", "--models", root, "--method", "tail",
+                     "--tail-fraction", "0.5", "--tail-weight", "0.25", "--width", "8"]) == 0
+    model = load_model("rtk-like", "classify", 0.25, root)
+    assert training_of(model) == {"method": "tail", "fraction": 0.5, "weight": 0.25}
+    assert model.backbone.width == 8
+    assert "--method tail --tail-fraction 0.5 --tail-weight 0.25 --width 8" in \
+        model.meta["provenance"]["command"]
+
+
 @pytest.mark.parametrize("extra, message", [
     (["--method", "consistency", "--copies", "1"], "m >= 2"),
     (["--method", "consistency", "--consistency-lambda", "-3"], "consistency_lambda -3"),
     (["--device", "tpu9"], "device"),
+    (["--method", "tail", "--tail-fraction", "0"], "tail_fraction 0.0 must be in (0, 1]"),
+    (["--width", "1"], "--width 1 must be between 2 and 256"),
 ])
 def test_bad_training_options_give_one_line(capsys, tmp_path, extra, message):
     _one_error_line(capsys, ["train", *TINY, "--sigma", "0.25", "--models", str(tmp_path),

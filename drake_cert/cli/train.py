@@ -51,11 +51,20 @@ def configure(parser) -> None:
                         help=f"classifier and end-to-end regressor epochs (default: "
                              f"max({MIN_EPOCHS}, "
                              f"ceil({FRAME_PASSES} / training frames)))")
-    parser.add_argument("--method", choices=("gaussian", "consistency"), default="gaussian",
+    parser.add_argument("--method", choices=("gaussian", "consistency", "tail"),
+                        default="gaussian",
                         help="classifier training: 'gaussian' augmentation (cross-entropy on "
-                             "one noisy copy) or 'consistency' regularization (m noisy copies; "
-                             "+ lambda * KL to their mean softmax + eta * its entropy; "
-                             "docs/design.md 3.2); default gaussian")
+                             "one noisy copy), 'consistency' regularization (m noisy copies; "
+                             "+ lambda * KL to their mean softmax + eta * its entropy) or "
+                             "'tail' ((1 - beta) mean + beta mean of the worst q of a batch's "
+                             "losses); docs/design.md 3.2; default gaussian")
+    parser.add_argument("--tail-fraction", type=float, default=0.25,
+                        help="tail: the worst share q of a batch's frames (default 0.25)")
+    parser.add_argument("--tail-weight", type=float, default=0.5,
+                        help="tail: weight beta of their mean loss (default 0.5)")
+    parser.add_argument("--width", type=int, default=16,
+                        help="classifier: channels of the network's first stage, then 2x and "
+                             "4x (default 16; the run-time cost grows about as its square)")
     parser.add_argument("--consistency-lambda", type=float, default=10.0,
                         help="consistency: weight lambda of the KL term (default 10)")
     parser.add_argument("--consistency-eta", type=float, default=0.5,
@@ -110,6 +119,8 @@ def run(args) -> int:
         raise ConfigError(f"--epochs {args.epochs} must be positive")
     if args.frames_per_class is not None and args.frames_per_class <= 0:
         raise ConfigError(f"--frames-per-class {args.frames_per_class} must be positive")
+    if not 2 <= args.width <= 256:
+        raise ConfigError(f"--width {args.width} must be between 2 and 256 channels")
     if args.all:
         presets = [args.preset] if args.preset else list(ALL_PRESETS)
         sigmas = [check_sigma(args.sigma)] if args.sigma is not None else list(ALL_SIGMAS)
@@ -134,12 +145,15 @@ def run(args) -> int:
 
 def train_config(args):
     """The classifier's :class:`TrainConfig` of the command line (method and its parameters)."""
-    from drake_cert.perception.training import TrainConfig, consistency_config
+    from drake_cert.perception.training import TrainConfig, consistency_config, tail_config
 
+    base = TrainConfig(width=int(getattr(args, "width", 16)))
     if getattr(args, "method", "gaussian") == "consistency":
         return consistency_config(args.consistency_lambda, copies=args.copies,
-                                  eta=args.consistency_eta)
-    return TrainConfig()
+                                  eta=args.consistency_eta, base=base)
+    if getattr(args, "method", "gaussian") == "tail":
+        return tail_config(args.tail_fraction, args.tail_weight, base=base)
+    return base
 
 
 def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
@@ -155,6 +169,11 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
     if task == "classify" and getattr(args, "method", "gaussian") == "consistency":
         cmd += ["--method", "consistency", "--consistency-lambda", f"{args.consistency_lambda:g}",
                 "--consistency-eta", f"{args.consistency_eta:g}", "--copies", str(args.copies)]
+    if task == "classify" and getattr(args, "method", "gaussian") == "tail":
+        cmd += ["--method", "tail", "--tail-fraction", f"{args.tail_fraction:g}",
+                "--tail-weight", f"{args.tail_weight:g}"]
+    if task == "classify" and int(getattr(args, "width", 16)) != 16:
+        cmd += ["--width", str(int(args.width))]
     if args.seed != 0:
         cmd += ["--seed", str(args.seed)]
     if args.frames_per_class is not None:

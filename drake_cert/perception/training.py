@@ -53,16 +53,18 @@ class TrainConfig:
     weight_decay: float = 5.0e-4
     momentum: float = 0.9
     flip: bool = True
-    method: str = "gaussian"  # or "consistency" (TRAINING_METHODS)
+    method: str = "gaussian"  # or "consistency", "tail" (TRAINING_METHODS)
     copies: int = 1  # noisy copies of each frame per step (consistency: m >= 2)
     consistency_lambda: float = 0.0  # weight of the KL consistency term
     consistency_eta: float = 0.0  # weight of the entropy of the copies' mean softmax
+    tail_fraction: float = 0.0  # tail: the worst share q of a batch's frames (0 < q <= 1)
+    tail_weight: float = 0.0  # tail: weight beta of their mean loss beside the batch mean
 
     def __post_init__(self):
         check_training_method(self)
 
 
-TRAINING_METHODS = ("gaussian", "consistency")
+TRAINING_METHODS = ("gaussian", "consistency", "tail")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -94,9 +96,17 @@ def check_training_method(config: TrainConfig) -> None:
     if config.method not in TRAINING_METHODS:
         raise ConfigError(f"training method {config.method!r} is not one of "
                          f"{', '.join(TRAINING_METHODS)}")
-    if config.method == "gaussian" and (config.copies != 1 or config.consistency_lambda
-                                        or config.consistency_eta):
-        raise ConfigError("the gaussian method takes one noisy copy and no consistency terms")
+    if config.method in ("gaussian", "tail") and (config.copies != 1 or config.consistency_lambda
+                                                  or config.consistency_eta):
+        raise ConfigError(f"the {config.method} method takes one noisy copy and no consistency "
+                          "terms")
+    if config.method != "tail" and (config.tail_fraction or config.tail_weight):
+        raise ConfigError(f"the {config.method} method takes no tail terms")
+    if config.method == "tail":
+        if not (math.isfinite(config.tail_fraction) and 0.0 < config.tail_fraction <= 1.0):
+            raise ConfigError(f"tail_fraction {config.tail_fraction} must be in (0, 1]")
+        if not (math.isfinite(config.tail_weight) and 0.0 <= config.tail_weight <= 1.0):
+            raise ConfigError(f"tail_weight {config.tail_weight} must be in [0, 1]")
     if config.method == "consistency":
         if int(config.copies) != config.copies or config.copies < 2:
             raise ConfigError(f"consistency needs m >= 2 noisy copies (got {config.copies})")
@@ -114,10 +124,30 @@ def consistency_config(lam: float, *, copies: int = 2, eta: float = 0.5,
                                consistency_lambda=float(lam), consistency_eta=float(eta))
 
 
+def tail_config(fraction: float, weight: float, base: TrainConfig | None = None) -> TrainConfig:
+    """The training configuration of the tail-weighted loss (:func:`tail_loss`)."""
+    return dataclasses.replace(base or TrainConfig(), method="tail",
+                               tail_fraction=float(fraction), tail_weight=float(weight))
+
+
+def tail_loss(logits: torch.Tensor, labels: torch.Tensor, *, fraction: float,
+              weight: float) -> torch.Tensor:
+    """``(1 - beta) mean CE + beta CVaR_q(CE)``: the batch's mean cross-entropy mixed with the
+    mean over its worst ``ceil(q B)`` frames (the empirical CVaR at level q of the per-frame
+    loss; docs/design.md 3.2). It weighs the frames the model misreads most, whose votes set
+    the conformal thresholds (3.6)."""
+    per_frame = nn.functional.cross_entropy(logits, labels, reduction="none")
+    worst = torch.topk(per_frame, max(1, math.ceil(fraction * per_frame.numel()))).values
+    return (1.0 - weight) * per_frame.mean() + weight * worst.mean()
+
+
 def training_method(config: TrainConfig) -> dict:
     """The method and its parameters, as a model file's metadata records them."""
     if config.method == "gaussian":
         return {"method": "gaussian"}
+    if config.method == "tail":
+        return {"method": "tail", "fraction": config.tail_fraction,
+                "weight": config.tail_weight}
     return {"method": "consistency", "copies": config.copies,
             "lambda": config.consistency_lambda, "eta": config.consistency_eta}
 
@@ -301,6 +331,8 @@ def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, epoch: int,
         if cfg.method == "consistency":
             loss = consistency_loss(logits, y, copies=cfg.copies, lam=cfg.consistency_lambda,
                                     eta=cfg.consistency_eta)
+        elif cfg.method == "tail":
+            loss = tail_loss(logits, y, fraction=cfg.tail_fraction, weight=cfg.tail_weight)
         else:
             loss = loss_fn(logits, y)
         optimizer.zero_grad(set_to_none=True)
