@@ -59,8 +59,9 @@ def main() -> None:
     own = np.array([classifier.sample_counts(cal.images[i], args.n, 250,
                                              make_generator(args.seed + i, classifier.device))
                     [int(cal.labels[i])] for i in range(len(cal.labels))])
+    width = getattr(getattr(model, "backbone", model), "width", "?")
     print(f"{args.preset}, sigma {args.sigma:g}, {args.model or 'shipped model'} "
-          f"(training {model.meta.get('training')}, width {getattr(getattr(model, 'backbone', model), 'width', '?')}), "
+          f"(training {model.meta.get('training')}, width {width}), "
           f"{len(cal.labels)} {args.split} frames, n = {args.n}, fp32 torch, {args.threads} "
           f"thread(s): {time.perf_counter() - start:.0f} s")
     scores = calibration_scores(own, args.n)

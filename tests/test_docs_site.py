@@ -9,7 +9,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("drake_cert/certification", "drake_cert/perception", "drake_cert/experiments",
             "systems", "synthesis")
-TOP_MODULES = ("config", "errors", "io", "rng", "threads", "metrics", "dynamics")
+TOP_MODULES = ("config", "errors", "io", "rng", "progress", "threads", "metrics", "dynamics")
 
 
 def _documented() -> set[str]:

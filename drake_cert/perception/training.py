@@ -30,12 +30,12 @@ from pathlib import Path
 import numpy as np
 import torch
 from torch import nn
-from tqdm import tqdm
 
 from drake_cert.errors import ConfigError
 from drake_cert.io import atomic_write_bytes
 from drake_cert.perception.frameset import FrameSet
 from drake_cert.perception.models import SmallResNet, StiffnessRegressor
+from drake_cert.progress import progress_bar
 from drake_cert.rng import torch_generator
 
 STIFFNESS_UNIT = 1.0e5  # N/rad; regression targets are fitted in this unit
@@ -316,8 +316,9 @@ def train_epoch(model: nn.Module, optimizer, train_set: FrameSet, *, epoch: int,
     order = torch.randperm(n, generator=gen)
     flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
     total_loss, correct = 0.0, 0
-    bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
-               file=sys.stderr, disable=not progress, leave=False)
+    bar = progress_bar(range(steps_per_epoch),
+                       desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
+                       disable=not progress, leave=False)
     for b in bar:
         idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
         x = train_set.images[idx]
@@ -474,8 +475,9 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
         order = torch.randperm(n, generator=gen)
         flips = torch.rand(n, generator=gen) < 0.5 if cfg.flip else torch.zeros(n, dtype=bool)
         sq = 0.0
-        bar = tqdm(range(steps_per_epoch), desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
-                   file=sys.stderr, disable=not progress, leave=False)
+        bar = progress_bar(range(steps_per_epoch),
+                           desc=f"{description} epoch {epoch + 1}/{cfg.epochs}",
+                           disable=not progress, leave=False)
         for b in bar:
             idx = order[b * cfg.batch_size:(b + 1) * cfg.batch_size]
             x = train_set.images[idx]
