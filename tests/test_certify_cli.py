@@ -48,6 +48,18 @@ def _run_json(capsys, args):
     return json.loads(capsys.readouterr().out)
 
 
+def test_certify_json_keeps_its_progress_on_stderr_in_a_log(models, capsys):
+    """With --json the JSON is on stdout and the progress still on stderr, as whole lines
+    (capsys: stderr is not a terminal, as in a log): a long run is never silent."""
+    out = _run_json(capsys, [*FAST, "--models", models, "--sigma", "0.25"])
+    assert out["summary"]["frames"] == 3
+    assert cli.main(["certify", *FAST, "--models", models, "--sigma", "0.25", "--json"]) == 0
+    captured = capsys.readouterr()
+    json.loads(captured.out)
+    lines = [line for line in captured.err.splitlines() if "certify rtk-like" in line]
+    assert lines and all("\r" not in line for line in lines)
+
+
 def test_certify_reports_accuracy_radius_abstain_rate_and_interval(models, capsys):
     out = _run_json(capsys, [*FAST, "--models", models, "--sigma", "0.25", "--attack", "sa"])
     s = out["summary"]

@@ -13,7 +13,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 
 from drake_cert.errors import ConfigError
 
@@ -144,9 +143,9 @@ def run(args: argparse.Namespace) -> int:
     images, labels = test.images[index], test.labels[index]
     stiffness = test.stiffness_n_per_rad[index]
 
-    def progress(it):
+    def progress(it):  # on stderr, also with --json (its JSON is on stdout): a log shows it
         return progress_bar(it, desc=f"certify {settings.preset} sigma={settings.sigma:g}",
-                            leave=False, disable=args.json and not sys.stderr.isatty())
+                            leave=False)
 
     if settings.task == "classify":
         conformal_cal = None
