@@ -16,8 +16,7 @@ import math
 import pytest
 import yaml
 
-from drake_cert.config import load_conditions, load_settings, load_vehicle
-from drake_cert.data import __file__ as data_init
+from drake_cert.config import default_path, load_conditions, load_settings, load_vehicle
 from drake_cert.io import provenance
 from drake_cert.synthesis.design_io import (
     DesignTable,
@@ -28,7 +27,7 @@ from drake_cert.synthesis.design_io import (
 from drake_cert.synthesis.table import DesignCache, synthesize_table
 from drake_cert.synthesis.verify import verify_design_table
 
-VEHICLES = __import__("pathlib").Path(data_init).parent / "vehicles"
+VEHICLES = default_path("vehicles")
 
 
 def _table(vehicle):
