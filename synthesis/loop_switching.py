@@ -32,6 +32,7 @@ reference systems and generalized eigenvalues (no solver;
 :mod:`drake_cert.synthesis.verify_switching`).
 """
 
+import dataclasses
 import math
 
 import numpy as np
@@ -96,6 +97,10 @@ def loop_matrices(vehicle: VehicleParams, design: ControllerDesign, speed_min_mp
             for v in loop_speeds(design, speed_min_mps, offset, stride)]
 
 
+_SOLVED: dict = {}  # loop_lyapunov_matrix's results by the values of its inputs
+_SOLVED_KEPT = 16
+
+
 def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign],
                          speed_min_mps: float, law: str, lmi_margin: float
                          ) -> tuple[np.ndarray, float] | None:
@@ -107,7 +112,23 @@ def loop_lyapunov_matrix(vehicle: VehicleParams, designs: list[ControllerDesign]
     The LMI is posed on every :data:`COARSE_STRIDE`-th grid speed (and the ends); the
     matrix is then evaluated on the whole grid, and grid points where it proves less than
     half the trial rate are added and the LMI solved again (at most :data:`LOOP_ROUNDS`
-    times): a few hundred LMIs instead of a thousand, the same claim."""
+    times): a few hundred LMIs instead of a thousand, the same claim. Memoised on the values
+    of the inputs: the synthesis asks it (:func:`drake_cert.synthesis.table.
+    with_switchable_l1_loops`) before the certificate does, for the same designs."""
+    key = repr((dataclasses.asdict(vehicle),
+                [dataclasses.asdict(d) for d in designs if d.has_safe_speed],
+                float(speed_min_mps), law, float(lmi_margin)))
+    if key not in _SOLVED:
+        if len(_SOLVED) >= _SOLVED_KEPT:
+            _SOLVED.clear()
+        _SOLVED[key] = _solve_loop_lyapunov_matrix(vehicle, designs, speed_min_mps, law,
+                                                   lmi_margin)
+    found = _SOLVED[key]
+    return None if found is None else (found[0].copy(), found[1])
+
+
+def _solve_loop_lyapunov_matrix(vehicle, designs, speed_min_mps, law, lmi_margin):
+    """:func:`loop_lyapunov_matrix` without the memo."""
     import cvxpy as cp
 
     from drake_cert.synthesis.gains import solve_sdp_status

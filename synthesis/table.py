@@ -204,12 +204,8 @@ def design_for_slip_bound(vehicle: VehicleParams, label_range: LabelRange, setti
     c_hat = 0.5 * (certified[0] + certified[1])
     law = settings.controller.adaptation_law
     if gain is not None:
-        k_fixed, v_fixed = np.asarray(gain[0], dtype=float), float(gain[1])
-        key = (certified, tuple(k_fixed), v_fixed)
-        if key not in cache.evaluators:
-            cache.evaluators[key] = IntervalEvaluator(vehicle, settings, certified, k_fixed,
-                                                      v_fixed)
-        return _searched_design(cache.evaluators[key], searched, c_hat, slip_bound, law)
+        evaluator = _fixed_gain_evaluator(vehicle, settings, cache, certified, gain)
+        return _searched_design(evaluator, searched, c_hat, slip_bound, law)
     if certified not in cache.evaluators and certified not in cache.failures:
         try:
             k_m, v_hi = synthesize_state_feedback(vehicle, certified, settings.synthesis)
@@ -223,6 +219,17 @@ def design_for_slip_bound(vehicle: VehicleParams, label_range: LabelRange, setti
                                 settings.synthesis.filter_gain_max, 0.0, GAIN_LMI, {},
                                 float(slip_bound), law)
     return _searched_design(cache.evaluators[certified], searched, c_hat, slip_bound, law)
+
+
+def _fixed_gain_evaluator(vehicle: VehicleParams, settings: Settings, cache: DesignCache,
+                          certified, gain) -> IntervalEvaluator:
+    """The cached :class:`IntervalEvaluator` of ``certified`` with the fixed ``gain``
+    ``(k_m, gain_speed_max_mps)``."""
+    k_fixed, v_fixed = np.asarray(gain[0], dtype=float), float(gain[1])
+    key = (certified, tuple(k_fixed), v_fixed)
+    if key not in cache.evaluators:
+        cache.evaluators[key] = IntervalEvaluator(vehicle, settings, certified, k_fixed, v_fixed)
+    return cache.evaluators[key]
 
 
 def _searched_design(evaluator: IntervalEvaluator, label_range: LabelRange, c_hat,
@@ -357,13 +364,10 @@ def _capped_design(vehicle: VehicleParams, settings: Settings, design: Controlle
                    cache: DesignCache, cap: float) -> ControllerDesign:
     """``design`` searched again with its gain, slip bound and interval, the filter gain at
     most ``cap`` (1/s)."""
-    key = (design.certified_interval, tuple(design.k_m), design.gain_speed_max_mps)
-    if key not in cache.evaluators:
-        cache.evaluators[key] = IntervalEvaluator(vehicle, settings, design.certified_interval,
-                                                  design.k_m_array, design.gain_speed_max_mps)
+    evaluator = _fixed_gain_evaluator(vehicle, settings, cache, design.certified_interval,
+                                      (design.k_m_array, design.gain_speed_max_mps))
     label_range = LabelRange(tuple(design.labels), (design.stiffness_lo_n_per_rad,
                                                     design.stiffness_hi_n_per_rad),
                              design.friction_mu_lo)
-    return _searched_design(cache.evaluators[key], label_range,
-                            design.nominal_stiffness_n_per_rad, design.tire_slip_bound,
-                            design.certified_law, cap)
+    return _searched_design(evaluator, label_range, design.nominal_stiffness_n_per_rad,
+                            design.tire_slip_bound, design.certified_law, cap)
