@@ -358,8 +358,23 @@ def piecewise_constant_inverse_estimate(p: L1Parameters, sigma_hat):
     return np.linalg.solve(p.pc_gain, np.asarray(sigma_hat, dtype=float))
 
 
-def carried_estimate(old: L1Parameters, new: L1Parameters, sigma_old, s, u_ad: tuple,
-                     curvature: float, feedforward_curvature: float | None = None):
+@dataclasses.dataclass(frozen=True)
+class SwitchSample:
+    """What the controller reads at the sample where it switches design: the state ``s``
+    [e1 (m), e1' (m/s), e2 (rad), e2' (rad/s)], the curvature under the car (1/m) and the one
+    the feedforward reads (the preview; None: the same)."""
+
+    s: np.ndarray
+    curvature: float
+    feedforward_curvature: float | None = None
+
+    @property
+    def kappa_ff(self) -> float:
+        return self.curvature if self.feedforward_curvature is None else self.feedforward_curvature
+
+
+def carried_estimate(old: L1Parameters, new: L1Parameters, sigma_old, u_ad: tuple,
+                     at: SwitchSample):
     """The new design's uncertainty estimate at a switch, from the old design's (DESIGN 5.6).
 
     Each design d models ``s' = A_m,d s + b_d (u_ad,d + u_ff,d) + g_d V_d kappa + sigma_d``
@@ -373,18 +388,17 @@ def carried_estimate(old: L1Parameters, new: L1Parameters, sigma_old, s, u_ad: t
     Nothing about the plant (its stiffness, its tire) enters. ``u_ad`` is the pair
     ``(u_ad,old, u_ad,new)`` (rad).
     """
-    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
-    s = np.asarray(s, dtype=float)
+    s = np.asarray(at.s, dtype=float)
 
     def known(p: L1Parameters, adaptive: float):
-        return (p.a_m @ s + p.b_m * (adaptive + curvature_feedforward(p, kappa_ff))
-                + p.g_hat * (p.speed_mps * curvature))
+        return (p.a_m @ s + p.b_m * (adaptive + curvature_feedforward(p, at.kappa_ff))
+                + p.g_hat * (p.speed_mps * at.curvature))
 
     return np.asarray(sigma_old, dtype=float) + known(old, u_ad[0]) - known(new, u_ad[1])
 
 
-def piecewise_constant_hand_over(old: L1Parameters, new: L1Parameters, q_hat, u_ad: float, s,
-                                 curvature: float, feedforward_curvature: float | None = None):
+def piecewise_constant_hand_over(old: L1Parameters, new: L1Parameters, q_hat, u_ad: float,
+                                 at: SwitchSample):
     """A design switch of the piecewise-constant law at a sample: ``(q_hat, u_ad)`` for the
     new design's parameters, to be advanced by :func:`piecewise_constant_update` (DESIGN 5.6).
 
@@ -397,14 +411,13 @@ def piecewise_constant_hand_over(old: L1Parameters, new: L1Parameters, q_hat, u_
     (0 on a straight road). ``q_hat`` is in the old design's jump-free coordinates, the result
     in the new's.
     """
-    kappa_ff = curvature if feedforward_curvature is None else feedforward_curvature
-    s = np.asarray(s, dtype=float)
-    u = steering_command(old, s, u_ad, curvature, kappa_ff)
-    u_ad_new = float(u + new.k_m @ s - curvature_feedforward(new, kappa_ff))
-    sigma_old = piecewise_constant_estimate(old, predicted_measurement(old, q_hat, curvature) - s)
-    sigma_new = carried_estimate(old, new, sigma_old, s, (u_ad, u_ad_new), curvature, kappa_ff)
+    s, kappa = np.asarray(at.s, dtype=float), at.curvature
+    u = steering_command(old, s, u_ad, kappa, at.kappa_ff)
+    u_ad_new = float(u + new.k_m @ s - curvature_feedforward(new, at.kappa_ff))
+    sigma_old = piecewise_constant_estimate(old, predicted_measurement(old, q_hat, kappa) - s)
+    sigma_new = carried_estimate(old, new, sigma_old, (u_ad, u_ad_new), at)
     s_hat = s + piecewise_constant_inverse_estimate(new, sigma_new)
-    return predictor_memory(new, s_hat, curvature), u_ad_new
+    return predictor_memory(new, s_hat, kappa), u_ad_new
 
 
 def piecewise_constant_initial_state(s0, p: L1Parameters | None = None,

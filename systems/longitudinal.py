@@ -435,8 +435,20 @@ class LongitudinalMotion(Diagram):
         rate_hz = (camera if camera is not None else CameraSettings()).rate_hz
         t = tracking if tracking is not None else TrackingSettings()
         d = designs if designs is not None else ProfileDesigns()
-        initial_speed_mps = motion.initial_speed_mps
         _check_motion_limits(motion, t, rate_hz)
+        _check_decision_options(d)
+        self._keep_settings(motion, t, d)
+        period = 1.0 / rate_hz
+        self.offset_s = OFFSET_FRACTION * period
+        initial = SpeedProfile(((-math.inf, self.speed_command(motion.initial_speed_mps),
+                                 int(initial_design_index)),))
+        self._build(SpeedPlanner(self, initial, period), float(initial_arc_length_m),
+                    float(motion.initial_speed_mps))
+        self.set_name("longitudinal_motion")
+
+    def _keep_settings(self, motion: MotionSettings, t: TrackingSettings,
+                       d: ProfileDesigns) -> None:
+        """The tracking law's and the decision rule's numbers, read by :class:`SpeedPlanner`."""
         self.max_decel_mps2 = float(motion.max_decel_mps2)
         self.max_accel_mps2 = float(motion.max_accel_mps2)
         self.speed_gain_per_s = float(t.speed_gain_per_s)
@@ -444,7 +456,6 @@ class LongitudinalMotion(Diagram):
         self.envelope_decel_mps2 = t.envelope_decel_fraction * self.max_decel_mps2
         self.braking_margin_m = float(t.braking_margin_m)
         self.creep_speed_mps = float(t.creep_speed_mps)
-        _check_decision_options(d)
         self._join, self._speeds = d.join, d.design_speeds_mps
         self._spans = None if d.spans is None else [tuple(map(int, s)) for s in d.spans]
         self._design_of_span = (None if d.spans is None
@@ -455,16 +466,14 @@ class LongitudinalMotion(Diagram):
                                    else self.speed_command(d.frontier_speed_mps))
         self.window_m = float(d.window_m)
         self.envelope_index = None if d.envelope_index is None else int(d.envelope_index)
-        period = 1.0 / rate_hz
-        self.offset_s = OFFSET_FRACTION * period
 
-        initial = SpeedProfile(((-math.inf, self.speed_command(initial_speed_mps),
-                                 int(initial_design_index)),))
+    def _build(self, planner: SpeedPlanner, initial_arc_length_m: float,
+               initial_speed_mps: float) -> None:
+        """The planner and the kinematics [x, v], with the ports this block exports."""
         builder = DiagramBuilder()
-        self._planner = builder.AddNamedSystem("speed_planner",
-                                               SpeedPlanner(self, initial, period))
-        kin = builder.AddNamedSystem("kinematics", _kinematics_system(
-            float(initial_arc_length_m), float(initial_speed_mps)))
+        self._planner = builder.AddNamedSystem("speed_planner", planner)
+        kin = builder.AddNamedSystem("kinematics", _kinematics_system(initial_arc_length_m,
+                                                                      initial_speed_mps))
         builder.Connect(self._planner.GetOutputPort("acceleration_mps2"), kin.get_input_port(0))
         builder.Connect(kin.get_output_port(0), self._planner.GetInputPort("kinematics"))
         demux = builder.AddSystem(Demultiplexer([1, 1]))
@@ -476,7 +485,6 @@ class LongitudinalMotion(Diagram):
         builder.ExportOutput(self._planner.GetOutputPort("speed_reference_mps"),
                              "speed_reference_mps")
         builder.BuildInto(self)
-        self.set_name("longitudinal_motion")
 
     @property
     def join_entry(self) -> Callable[[int, int], tuple[float, int]] | None:

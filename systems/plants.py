@@ -220,6 +220,29 @@ class LinearLateralPlant(_NamedInputPlant):
         self.set_name("linear_lateral_plant")
 
 
+def _single_track_system(vehicle: VehicleParams, stop_speed_mps: float) -> SymbolicVectorSystem:
+    """The body state [y, vy, psi, r] under the inputs :data:`PLANT_INPUTS`, frozen below the
+    stop speed (:func:`frozen_below_stop_speed`)."""
+    x = sym.MakeVectorVariable(4, "x")
+    u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
+    with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
+        x_dot = frozen_below_stop_speed(
+            lambda v_eff: single_track_derivatives(vehicle, x,
+                                                   PlantInputs(u, c, mu, v_eff, kappa)), v,
+            stop_speed_mps)
+    return SymbolicVectorSystem(state=x, input=[u, c, mu, v, kappa], dynamics=x_dot, output=x)
+
+
+def _error_coordinates_system() -> SymbolicVectorSystem:
+    """The output map (x, V, kappa) -> s. Drake 1.51's SymbolicVectorSystem requires a state
+    when it sits in a continuous diagram: it carries one constant dummy state (derivative 0)."""
+    xin = sym.MakeVectorVariable(4, "x_in")
+    v_in, kappa_in = sym.Variable("speed"), sym.Variable("curvature")
+    return SymbolicVectorSystem(
+        state=[sym.Variable("unused")], input=np.concatenate([xin, [v_in, kappa_in]]),
+        dynamics=[sym.Expression(0.0)], output=error_state_from_body(xin, v_in, kappa_in))
+
+
 class NonlinearLateralPlant(_NamedInputPlant):
     """Single track with Fiala tires; continuous state ``[e1, vy, e2, r]``, output s.
 
@@ -232,25 +255,11 @@ class NonlinearLateralPlant(_NamedInputPlant):
 
     def __init__(self, vehicle: VehicleParams, stop_speed_mps: float = STOP_SPEED_MPS):
         super().__init__()
-        x = sym.MakeVectorVariable(4, "x")
-        u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
         self.stop_speed_mps = float(stop_speed_mps)
         builder = DiagramBuilder()
-        with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
-            x_dot = frozen_below_stop_speed(
-                lambda v_eff: single_track_derivatives(vehicle, x,
-                                                       PlantInputs(u, c, mu, v_eff, kappa)), v,
-                stop_speed_mps)
-        dynamics = builder.AddNamedSystem("single_track", SymbolicVectorSystem(
-            state=x, input=[u, c, mu, v, kappa], dynamics=x_dot, output=x))
-        xin = sym.MakeVectorVariable(4, "x_in")
-        v_in, kappa_in = sym.Variable("speed"), sym.Variable("curvature")
-        # Drake 1.51's SymbolicVectorSystem requires a state when it sits in a continuous
-        # diagram; the output map carries one constant dummy state (derivative 0).
-        dummy = sym.Variable("unused")
-        to_error = builder.AddNamedSystem("error_coordinates", SymbolicVectorSystem(
-            state=[dummy], input=np.concatenate([xin, [v_in, kappa_in]]),
-            dynamics=[sym.Expression(0.0)], output=error_state_from_body(xin, v_in, kappa_in)))
+        dynamics = builder.AddNamedSystem("single_track",
+                                          _single_track_system(vehicle, self.stop_speed_mps))
+        to_error = builder.AddNamedSystem("error_coordinates", _error_coordinates_system())
         # (x, V, kappa) -> s; V and kappa come from the exported inputs' multiplexer.
         mux = builder.AddSystem(Multiplexer([1] * len(PLANT_INPUTS)))
         builder.Connect(mux.get_output_port(0), dynamics.get_input_port(0))

@@ -273,8 +273,8 @@ class SwitchingL1Law(LeafSystem):
             if switched and not was_stopped:  # bumpless, the estimate carried (l1_law)
                 preview = curvatures[1] if self.curvature_preview else None
                 z[S_HAT], z[U_AD] = l1_law.piecewise_constant_hand_over(
-                    self.law_at(*old).parameters, law.parameters, z[S_HAT], z[U_AD], s, kappa,
-                    preview)
+                    self.law_at(*old).parameters, law.parameters, z[S_HAT], z[U_AD],
+                    l1_law.SwitchSample(s, kappa, preview))
             elif switched:  # resuming from a stop: the predictor at s
                 z[S_HAT] = l1_law.predictor_memory(law.parameters, s, kappa)
             if self.fast:
@@ -578,6 +578,20 @@ def _row_product_system(n_curvatures: int = 1) -> SymbolicVectorSystem:
                                 dynamics=[sym.Expression(0.0)], output=[u])
 
 
+def _export_row_steering(builder: DiagramBuilder, law, curvature_ports: list[str]) -> None:
+    """The fast path's steering: the law's ``command_row`` times [s, curvatures, 1] in C++
+    (:func:`_row_product_system`), exported as ``steering_rad``."""
+    n = len(curvature_ports)
+    product = builder.AddNamedSystem("steering_from_row", _row_product_system(n))
+    mux = builder.AddSystem(Multiplexer([5 + n, 4] + [1] * n))
+    builder.Connect(law.GetOutputPort("command_row"), mux.get_input_port(0))
+    builder.ConnectInput("state", mux.get_input_port(1))
+    for i, name in enumerate(curvature_ports):
+        builder.ConnectInput(name, mux.get_input_port(2 + i))
+    builder.Connect(mux.get_output_port(0), product.get_input_port(0))
+    builder.ExportOutput(product.get_output_port(0), "steering_rad")
+
+
 class SwitchingL1Controller(Diagram):
     """The switching, speed-scheduled L1 controller (module docstring) as one block.
 
@@ -599,26 +613,17 @@ class SwitchingL1Controller(Diagram):
         super().__init__()
         options = options or SwitchingOptions()
         law = options.law or "piecewise_constant"
-        fast, curvature_preview = options.fast, options.curvature_preview
         builder = DiagramBuilder()
         leaf = SwitchingGradientL1Law if law == "gradient" else SwitchingL1Law
         self._law = builder.AddNamedSystem("switching_l1_law", leaf(
             vehicle=vehicle, designs=designs, settings=settings,
             options=dataclasses.replace(options, law=law)))
         curvature_ports = ["curvature_per_m"] + \
-            (["curvature_preview_per_m"] if curvature_preview else [])
+            (["curvature_preview_per_m"] if options.curvature_preview else [])
         for name in ("state", *curvature_ports, "speed_mps", "design_index"):
             builder.ExportInput(self._law.GetInputPort(name), name)
-        if fast and law != "gradient":
-            n = len(curvature_ports)
-            product = builder.AddNamedSystem("steering_from_row", _row_product_system(n))
-            mux = builder.AddSystem(Multiplexer([5 + n, 4] + [1] * n))
-            builder.Connect(self._law.GetOutputPort("command_row"), mux.get_input_port(0))
-            builder.ConnectInput("state", mux.get_input_port(1))
-            for i, name in enumerate(curvature_ports):
-                builder.ConnectInput(name, mux.get_input_port(2 + i))
-            builder.Connect(mux.get_output_port(0), product.get_input_port(0))
-            builder.ExportOutput(product.get_output_port(0), "steering_rad")
+        if options.fast and law != "gradient":
+            _export_row_steering(builder, self._law, curvature_ports)
         else:
             builder.ExportOutput(self._law.GetOutputPort("steering_rad"), "steering_rad")
         for name in ("active_design_index", "scheduled_speed_mps"):

@@ -206,8 +206,8 @@ def nonlinear_switched_run(table, pair, conditions, s0):
             ctrl.GetMyContextFromRoot(context))[0]))  # the request the update will read
         if requested != int(z[DESIGN]):
             new = law.law_at(requested, int(z[GRID])).parameters
-            q_new, u_ad_new = l1_law.piecewise_constant_hand_over(p, new, z[S_HAT], z[U_AD], s,
-                                                                  curvature)
+            q_new, u_ad_new = l1_law.piecewise_constant_hand_over(
+                p, new, z[S_HAT], z[U_AD], l1_law.SwitchSample(s, curvature))
             carried = l1_law.piecewise_constant_estimate(
                 new, l1_law.predicted_measurement(new, q_new, curvature) - s)
             truth_new = true_uncertainty(vehicle, new, s, u, u_ad_new, inputs)

@@ -201,8 +201,8 @@ def test_a_switch_keeps_the_steering_and_carries_the_estimate_exactly(preview):
     q = l1_law.predictor_memory(old, s + l1_law.piecewise_constant_inverse_estimate(old,
                                                                                  sigma_old),
                                 kappa)
-    q_new, u_ad_new = l1_law.piecewise_constant_hand_over(old, new, q, u_ad, s, kappa,
-                                                          kappa_ff if preview else None)
+    q_new, u_ad_new = l1_law.piecewise_constant_hand_over(
+        old, new, q, u_ad, l1_law.SwitchSample(s, kappa, kappa_ff if preview else None))
     u_new, sigma_new = truth(new, u_ad_new)
     assert u_new == pytest.approx(u_old, abs=1e-15)  # bumpless
     read = l1_law.piecewise_constant_estimate(

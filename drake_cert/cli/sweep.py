@@ -1,12 +1,15 @@
 """``drake-cert sweep``: train candidate classifiers and pick the one to ship.
 
-For one preset and sigma: the shipped classifier (the baseline) and consistency-regularized
-candidates at each ``--lambdas`` value (trained by ``drake-cert train``, one model folder per
-candidate under ``--root``) are certified on the same held-out test frames, clean and under
-the stability attack at each budget; the table reports, per candidate and cell, the label
-ranges certified right, certified WRONG and abstaining, and the pick is the candidate with the
-fewest abstentions among those that do not certify wrong more than the baseline (its 95 %
-upper bound; docs/design.md 3.2). Writes ``sweep.json``, ``sweep.md`` and ``sweep.png`` to
+For one preset and sigma: the shipped classifier (the baseline) and candidates trained by
+``drake-cert train`` (one model folder each under ``--root``): consistency regularization at
+each ``--lambdas`` value and the tail-weighted loss at each ``--tails`` pair, at each
+``--widths`` width. All are certified on the same held-out test frames, clean and under the
+stability attack at each budget; the table reports, per candidate and cell, the label ranges
+certified right, certified WRONG and abstaining, and per label the own-label tail (frames g
+gives under half the votes for their own label). The pick is, among the candidates that do not
+certify wrong more than the baseline (its 95 % upper bound), the one with the fewest
+abstentions (``--rank abstain``) or the thinnest worst-label tail (``--rank tail``; docs/design.md
+3.2). Writes ``sweep.json``, ``sweep.md`` and ``sweep.png`` to
 ``--out``; each candidate's evaluation is stored as it finishes and reused when the model
 file (SHA-256) and settings are the same, so an interrupted sweep resumes. ``--device cuda``
 trains and certifies on a GPU (torch only, no Drake needed).
@@ -25,6 +28,8 @@ def _floats(text: str) -> tuple[float, ...]:
     import argparse
     import math
 
+    if text.strip().lower() == "none":
+        return ()
     try:
         values = tuple(float(v) for v in text.split(",") if v.strip())
     except ValueError:
@@ -35,14 +40,51 @@ def _floats(text: str) -> tuple[float, ...]:
     return values
 
 
+def _tails(text: str) -> tuple[tuple[float, float], ...]:
+    import argparse
+
+    try:
+        pairs = tuple(tuple(float(x) for x in item.split(":")) for item in text.split(",")
+                      if item.strip())
+    except ValueError:
+        pairs = ((),)
+    if not pairs or any(len(p) != 2 or not (0 < p[0] <= 1 and 0 <= p[1] <= 1) for p in pairs):
+        raise argparse.ArgumentTypeError(f"{text!r}: give q:beta pairs, comma-separated, with q "
+                                         "in (0, 1] and beta in [0, 1], e.g. 0.25:0.5")
+    return pairs
+
+
+def _widths(text: str) -> tuple[int, ...]:
+    import argparse
+
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or min(values) < 1:
+        raise argparse.ArgumentTypeError(f"{text!r}: give whole numbers >= 1, comma-separated")
+    return values
+
+
 def configure(parser) -> None:
     from drake_cert.cli.certify import _positive_int
 
     parser.add_argument("--preset", required=True, help="preset name, e.g. robotcar-like")
     parser.add_argument("--sigma", type=float, required=True, help="smoothing noise (> 0)")
     parser.add_argument("--lambdas", type=_floats, default=(5.0, 10.0, 20.0),
-                        help="consistency-regularization weights to train, comma-separated "
-                             "(default: 5,10,20; m = 2 copies, eta = 0.5)")
+                        help="consistency-regularization weights to train, comma-separated, "
+                             "or 'none' (default: 5,10,20; m = 2 copies, eta = 0.5)")
+    parser.add_argument("--tails", type=_tails, default=(),
+                        help="tail-weighted candidates to train, q:beta pairs comma-separated "
+                             "(e.g. 0.25:0.5; default: none)")
+    parser.add_argument("--widths", type=_widths, default=(16,),
+                        help="network widths of the trained candidates, comma-separated "
+                             "(default: 16)")
+    parser.add_argument("--rank", choices=("abstain", "tail"), default="abstain",
+                        help="among eligible candidates pick the fewest abstentions in the "
+                             "ranking cell, or the thinnest worst-label own-label tail (the "
+                             "frames that set the drive's conformal thresholds; default: "
+                             "abstain)")
     parser.add_argument("--budgets", type=_floats, default=None,
                         help="budgets eps, comma-separated (default: sigma)")
     parser.add_argument("--frames", type=_positive_int, default=600,
@@ -94,11 +136,11 @@ def run(args) -> int:
     settings = sweep.SweepSettings(preset=args.preset, sigma=sigma,
                                    budgets=args.budgets or (sigma,), frames=args.frames,
                                    n0=args.n0, n=args.n, alpha=args.alpha, device=args.device,
-                                   seed=args.seed)
+                                   seed=args.seed, rank=args.rank)
     settings.certify_settings("sa", settings.ranking_eps).validate()
     root = Path(args.root or f"sweeps/{args.preset}_sigma{sigma_tag(sigma)}")
     out = Path(args.out) if args.out else root
-    candidates = sweep.default_candidates(args.lambdas)
+    candidates = sweep.default_candidates(args.lambdas, args.tails, args.widths)
     paths = {}
     for cand in candidates:
         if cand.train_options is None:
@@ -108,7 +150,7 @@ def run(args) -> int:
         if not paths[cand.name].exists():
             _train(args, sigma, root / cand.name, cand.train_options)
     test = load_split(args.preset, "test", seed=sweep.DATA_SEED, conditions=table)
-    results, identity, header = {}, _identity(settings), []
+    results, tails, identity, header = {}, {}, _identity(settings), []
     for cand in candidates:
         store = root / f"{cand.name}.eval.json"
         sha = file_sha256(paths[cand.name])
@@ -116,26 +158,27 @@ def run(args) -> int:
         model = load_model_file(paths[cand.name])
         header.append(f"- {cand.name}: {_trained(model)} ({paths[cand.name]}, SHA-256 "
                       f"{sha[:12]})")
-        if stored and stored["sha256"] == sha and stored["settings"] == identity:
-            results[cand.name] = stored["rows"]
+        if (stored and stored["sha256"] == sha and stored["settings"] == identity
+                and "tail" in stored):
+            results[cand.name], tails[cand.name] = stored["rows"], stored["tail"]
             continue
 
         def progress(it, name=cand.name):
             return progress_bar(it, desc=f"sweep {name}", leave=False)
 
-        rows = sweep.evaluate_candidate(model, test, settings, table, progress)
-        sweep.write_json(store, {"sha256": sha, "settings": identity, "rows": rows,
+        rows, tail = sweep.evaluate_candidate(model, test, settings, table, progress)
+        sweep.write_json(store, {"sha256": sha, "settings": identity, "rows": rows, "tail": tail,
                                  "training": training_of(model),
                                  "file": str(paths[cand.name])})
-        results[cand.name] = rows
-    choice = sweep.pick_candidate(results, settings)
+        results[cand.name], tails[cand.name] = rows, tail
+    choice = sweep.pick_candidate(results, settings, tails)
     header = ["Candidates (training method, epochs, where trained, fit time):", *header, ""]
     if args.note:
         header = [args.note, "", *header]
-    text = sweep.render(results, choice, settings, header)
+    text = sweep.render(results, choice, settings, header, tails)
     out.mkdir(parents=True, exist_ok=True)
     sweep.write_json(out / "sweep.json", {"settings": identity, "results": results,
-                                          "choice": choice,
+                                          "tails": tails, "choice": choice,
                                           "files": {k: str(v) for k, v in paths.items()}})
     atomic_write_text(out / "sweep.md", text)
     sweep.plot(results, out / "sweep.png", settings)
@@ -152,6 +195,8 @@ def _trained(model) -> str:
     method = ", ".join([t["method"], *(f"{k} {v:g}" for k, v in t.items() if k != "method")])
     m = model.meta.get("train_metrics", {})
     fit = model.meta.get("seconds", {}).get("fit")
+    width = getattr(getattr(model, "backbone", model), "width", None)
+    method += f", width {width}" if width is not None else ""
     return (f"{method}; {m.get('epochs', '?')} epochs on {m.get('device', 'cpu')}"
             + (f", {fit:.0f} s" if fit is not None else ""))
 
@@ -160,7 +205,7 @@ def _identity(settings) -> dict:
     import dataclasses
 
     return {k: (list(v) if isinstance(v, tuple) else v)
-            for k, v in dataclasses.asdict(settings).items() if k != "device"}
+            for k, v in dataclasses.asdict(settings).items() if k not in ("device", "rank")}
 
 
 def _train(args, sigma: float, folder: Path, options: tuple[str, ...]) -> None:

@@ -292,6 +292,7 @@ def _certified_record(clean, seen, label: int, y: float, context: _RecordContext
     return extra | {
         "label": label, "stiffness_n_per_rad": y,
         "clean_prediction": clean.label, "clean_radius": clean.radius,
+        "clean_own_share": float(clean.counts[label]) / max(1, int(clean.counts.sum())),
         "clean_radius_label": clean.radius_for([clean.top_label]) if not clean.abstained
         else 0.0,
         "prediction": seen.label, "radius": seen.radius,

@@ -31,12 +31,15 @@ from drake_cert.experiments.perception_eval import (
     CertifySettings,
     EvalFrames,
     certify_classifier,
+    clopper_pearson_interval,
     json_safe,
     select_frames,
 )
 from drake_cert.io import atomic_write_text
 
 OUTCOMES = ("certified_right", "certified_wrong", "interval_abstain")
+RANKS = ("abstain", "tail")
+TAIL_SHARE = 0.5  # a frame is in its label's tail when g gives its own label under half the votes
 DATA_SEED = 0  # the synthetic splits the shipped models were trained and tested on
 
 
@@ -49,17 +52,33 @@ class Candidate:
     train_options: tuple[str, ...] | None = None
 
 
-def default_candidates(lambdas: Iterable[float], copies: int = 2,
+def default_candidates(lambdas: Iterable[float], tails: Iterable[tuple[float, float]] = (),
+                       widths: Iterable[int] = (16,), copies: int = 2,
                        eta: float = 0.5) -> list[Candidate]:
-    """The baseline (an existing file: by default the shipped model) and consistency
-    regularization at each lambda."""
+    """The baseline (an existing file: by default the shipped model), then at each network
+    width: consistency regularization at each lambda (m = ``copies``, ``eta``) and the
+    tail-weighted loss at each ``(q, beta)`` (docs/design.md 3.2). Names carry the width when it
+    is not the default 16 (tail candidates always carry it)."""
     out = [Candidate("baseline")]
-    for lam in lambdas:
-        if not (math.isfinite(lam) and lam >= 0):
-            raise ConfigError(f"lambda {lam} must be a finite number >= 0")
-        out.append(Candidate(f"consistency_l{lam:g}",
-                             ("--method", "consistency", "--consistency-lambda", f"{lam:g}",
-                              "--consistency-eta", f"{eta:g}", "--copies", str(copies))))
+    for width in widths:
+        if int(width) < 1:
+            raise ConfigError(f"width {width} must be a whole number >= 1")
+        size = ("--width", str(int(width)))
+        suffix = "" if int(width) == 16 else f"_w{int(width)}"
+        for lam in lambdas:
+            if not (math.isfinite(lam) and lam >= 0):
+                raise ConfigError(f"lambda {lam} must be a finite number >= 0")
+            out.append(Candidate(f"consistency_l{lam:g}{suffix}",
+                                 ("--method", "consistency", "--consistency-lambda",
+                                  f"{lam:g}", "--consistency-eta", f"{eta:g}", "--copies",
+                                  str(copies), *size)))
+        for q, beta in tails:
+            if not (0 < q <= 1 and 0 <= beta <= 1):
+                raise ConfigError(f"tail (q {q:g}, beta {beta:g}): q must be in (0, 1] and "
+                                  "beta in [0, 1]")
+            out.append(Candidate(f"tail_q{q:g}_b{beta:g}_w{int(width)}",
+                                 ("--method", "tail", "--tail-fraction", f"{q:g}",
+                                  "--tail-weight", f"{beta:g}", *size)))
     return out
 
 
@@ -83,6 +102,7 @@ class SweepSettings:
     seed: int = 0
     rank_attack: str = "sa"
     rank_eps: float | None = None  # None: sigma
+    rank: str = "abstain"  # or "tail": the eligible candidate with the thinnest own-label tail
 
     def __post_init__(self):
         if self.sigma <= 0:
@@ -92,6 +112,8 @@ class SweepSettings:
         if self.rank_attack not in self.attacks or self.ranking_eps not in self.budgets:
             raise ConfigError(f"the ranking cell ({self.rank_attack}, eps "
                               f"{self.ranking_eps:g}) is not among the cells evaluated")
+        if self.rank not in RANKS:
+            raise ConfigError(f"rank {self.rank!r}: choose one of {', '.join(RANKS)}")
 
     @property
     def ranking_eps(self) -> float:
@@ -106,18 +128,20 @@ class SweepSettings:
 
 
 def evaluate_candidate(model, test, settings: SweepSettings, table: ConditionsTable,
-                       progress: Callable[[Iterable], Iterable] | None = None) -> list[dict]:
-    """One row per (attack, eps) cell: the model's three outcome shares on the sweep's frames
-    (the clean certificates are computed once and shared by the cells)."""
+                       progress: Callable[[Iterable], Iterable] | None = None
+                       ) -> tuple[list[dict], dict]:
+    """``(rows, tail)``: one row per (attack, eps) cell with the model's three outcome shares on
+    the sweep's frames (the clean certificates are computed once and shared by the cells), and
+    :func:`own_label_tail` of the clean certificates."""
     index = select_frames(test.labels, settings.frames, frame_choice_seed(settings.seed))
     images, labels = test.images[index], test.labels[index]
     stiffness = test.stiffness_n_per_rad[index]
     clean_cache: dict = {}
-    rows = []
+    rows, tail = [], None
     for attack in settings.attacks:
         for eps in settings.budgets:
             cs = settings.certify_settings(attack, eps)
-            _, summary = certify_classifier(
+            records, summary = certify_classifier(
                 model, EvalFrames(images, labels, stiffness, tuple(test.label_names)), table,
                 cs, progress, CalibrationInputs(clean_cache=clean_cache))
             row = {"attack": attack, "eps": eps, "frames": summary["frames"],
@@ -126,13 +150,39 @@ def evaluate_candidate(model, test, settings: SweepSettings, table: ConditionsTa
                 row[name] = summary[f"{name}_rate"]
                 row[f"{name}_ci95"] = summary[f"{name}_rate_ci95"]
             rows.append(row)
-    return rows
+            if tail is None:
+                tail = own_label_tail(records, test.label_names)
+    return rows, tail
+
+
+def own_label_tail(records: list[dict], label_names: Iterable[str]) -> dict:
+    """Per true label: how many of its frames g gives under :data:`TAIL_SHARE` of the n
+    estimation votes at the clean frame (``records`` of ``certify_classifier``, whose
+    ``clean_own_share`` is that share), the share with its 95 % Clopper-Pearson interval, and
+    the lowest own-label share. These frames set the robust conformal thresholds (docs/design.md
+    3.6): the thinner this tail, the tighter the drive's label sets."""
+    out = {}
+    for lab, name in enumerate(label_names):
+        shares = [r["clean_own_share"] for r in records if r["label"] == lab]
+        under = sum(s < TAIL_SHARE for s in shares)
+        out[name] = {"frames": len(shares), "under_half": under,
+                     "share": under / len(shares) if shares else 0.0,
+                     "share_ci95": list(clopper_pearson_interval(under, len(shares))),
+                     "lowest": min(shares) if shares else None}
+    return out
+
+
+def worst_tail(tail: dict) -> float:
+    """The largest per-label tail share of :func:`own_label_tail`."""
+    return max(v["share"] for v in tail.values())
 
 
 def pick_candidate(results: dict[str, list[dict]], settings: SweepSettings,
-                   baseline: str = "baseline") -> dict:
+                   tails: dict[str, dict] | None = None, baseline: str = "baseline") -> dict:
     """The candidate to ship (module docstring): ``{"pick", "eligible", "reasons"}``, where
-    ``reasons[name]`` says why a candidate was not eligible."""
+    ``reasons[name]`` says why a candidate was not eligible. With ``settings.rank == "tail"``
+    the eligible candidate with the smallest worst-label tail (``tails[name]``, of
+    :func:`own_label_tail`) wins, abstentions breaking ties."""
     if baseline not in results:
         raise ConfigError(f"the sweep has no baseline {baseline!r} to compare with")
     bound = {(r["attack"], r["eps"]): r["certified_wrong_ci95"][1] for r in results[baseline]}
@@ -151,9 +201,17 @@ def pick_candidate(results: dict[str, list[dict]], settings: SweepSettings,
         return next(r["interval_abstain"] for r in results[name]
                     if r["attack"] == settings.rank_attack and r["eps"] == settings.ranking_eps)
 
-    best = min(eligible, key=lambda name: (abstain(name), name != baseline))
+    if settings.rank == "tail" and (tails is None or set(tails) != set(results)):
+        raise ConfigError("ranking by the tail needs every candidate's own-label tail")
+
+    def key(name: str) -> tuple:
+        first = (worst_tail(tails[name]),) if settings.rank == "tail" else ()
+        return (*first, abstain(name), name != baseline)
+
+    best = min(eligible, key=key)
     return {"pick": best, "eligible": eligible, "reasons": reasons,
-            "ranking": {"attack": settings.rank_attack, "eps": settings.ranking_eps}}
+            "ranking": {"attack": settings.rank_attack, "eps": settings.ranking_eps,
+                        "by": settings.rank}}
 
 
 def _share(row: dict, name: str) -> str:
@@ -162,8 +220,9 @@ def _share(row: dict, name: str) -> str:
 
 
 def render(results: dict[str, list[dict]], choice: dict, settings: SweepSettings,
-           header: Iterable[str] = ()) -> str:
-    """Markdown of the sweep: one row per candidate and cell, and the pick with its reason."""
+           header: Iterable[str] = (), tails: dict[str, dict] | None = None) -> str:
+    """Markdown of the sweep: one row per candidate and cell, each candidate's own-label tail
+    per label (when given), and the pick with its reason."""
     lines = [f"# Training sweep: {settings.preset}, sigma = {settings.sigma:g}", "", *header,
              f"Every candidate certified on the same {settings.frames} held-out test frames "
              f"(round-robin over labels), n0 = {settings.n0}, n = {settings.n}, alpha = "
@@ -178,10 +237,24 @@ def render(results: dict[str, list[dict]], choice: dict, settings: SweepSettings
             lines.append(f"| {name} | {r['attack']} | {r['eps']:g} | {r['accuracy']:.3f} | "
                          f"{_share(r, 'certified_right')} | {_share(r, 'certified_wrong')} | "
                          f"{_share(r, 'interval_abstain')} |")
+    if tails:
+        names = list(next(iter(tails.values())))
+        lines += ["", f"Own-label tail: per true label, the share of its frames to which g gives "
+                      f"under {TAIL_SHARE:g} of the n votes at the clean frame, with its 95 % "
+                      "interval and (in parentheses) the lowest own-label share.", "",
+                  "| candidate | " + " | ".join(names) + " |",
+                  "|---|" + "---|" * len(names)]
+        for cand, tail in tails.items():
+            cells = [f"{t['under_half']}/{t['frames']} = {t['share']:.3f} "
+                     f"[{t['share_ci95'][0]:.3f}, {t['share_ci95'][1]:.3f}] "
+                     f"({t['lowest']:.3f})" for t in tail.values()]
+            lines.append(f"| {cand} | " + " | ".join(cells) + " |")
     rank = choice["ranking"]
-    lines += ["", f"Pick: **{choice['pick']}**, the fewest abstentions under {rank['attack']} "
-                  f"at eps = {rank['eps']:g} among the candidates whose certified-wrong share "
-                  "is in every cell not above the baseline's 95 % upper bound "
+    by = (f"the thinnest worst-label tail (then the fewest abstentions under {rank['attack']} "
+          f"at eps = {rank['eps']:g})" if rank.get("by") == "tail" else
+          f"the fewest abstentions under {rank['attack']} at eps = {rank['eps']:g}")
+    lines += ["", f"Pick: **{choice['pick']}**, {by} among the candidates whose certified-wrong "
+                  "share is in every cell not above the baseline's 95 % upper bound "
                   f"({', '.join(choice['eligible'])})."]
     for name, why in choice["reasons"].items():
         lines.append(f"- {name}: not eligible, {why}.")
