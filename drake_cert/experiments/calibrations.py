@@ -88,7 +88,7 @@ def map_calibrations(tasks: list[CalibrationTask], make_worker, ledger: Calibrat
 
     todo = [t for t in tasks if (t.preset, t.sigma) not in stored]
 
-    def keep(index: int, result) -> None:
+    def store_calibration(index: int, result) -> None:
         value, cpu_s = result
         stored[(todo[index].preset, todo[index].sigma)] = value
         if spent is not None:
@@ -97,7 +97,7 @@ def map_calibrations(tasks: list[CalibrationTask], make_worker, ledger: Calibrat
 
     if progress is not None:
         progress(len(tasks) - len(todo))
-    (executor or LocalExecutor()).map(cpu_timed(make_worker), todo, progress, on_result=keep)
+    (executor or LocalExecutor()).map(cpu_timed(make_worker), todo, progress, on_result=store_calibration)
     return {(t.preset, t.sigma): stored[(t.preset, t.sigma)] for t in tasks}
 
 

@@ -439,7 +439,7 @@ def run_reproduction(config: ReproduceConfig, executor=None, store: RunStore | N
                 len(config.presets) * len(conformal_sigmas(config))),
                 spent["calibration_conformal"])
 
-    def keep(index: int, result) -> None:
+    def store_frame_rows(index: int, result) -> None:
         rows, cpu_s = result
         done[todo[index]] = rows
         spent["frames"].append(cpu_s)
@@ -450,7 +450,7 @@ def run_reproduction(config: ReproduceConfig, executor=None, store: RunStore | N
     if update is not None:
         update(stored)
     executor.map(cpu_timed(lambda: FrameWorker(config, betas, designs, conformal)), todo,
-                 update, on_result=keep, stop=stop)
+                 update, on_result=store_frame_rows, stop=stop)
     if cpu is not None:
         cpu.update({stage: round(sum(v), 1) for stage, v in spent.items()})
     order = {p: i for i, p in enumerate(config.presets)}
