@@ -20,7 +20,10 @@ Precision and backend are what ``auto`` picks here unless ``DRAKE_CERT_PRECISION
 otherwise (both printed). For each: the real-time factor, the wall time, the time inside
 perception (perf_counter around the perception block's work) and samples per frame.
 
-Usage: python benchmarks/bench_driving.py [--seconds 10] [--n 1000] [--threads 1]
+``--profile K`` also drives the conformal default once more under cProfile and prints its K
+most expensive functions (cumulative time per frame), the profile of a frame.
+
+Usage: python benchmarks/bench_driving.py [--seconds 10] [--n 1000] [--threads 1] [--profile 25]
 """
 
 import argparse
@@ -67,6 +70,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--n", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--profile", type=int, default=0,
+                        help="print the conformal drive's K most expensive functions")
     args = parser.parse_args()
     vehicle, conditions, settings = load_vehicle(), load_conditions(), load_settings()
     setup = dict(vehicle=vehicle, conditions=conditions, settings=settings,
@@ -114,6 +119,30 @@ def main() -> None:
                      "abstention_fraction": s["abstention_fraction"],
                      "envelope_fraction": s["envelope_fraction"]}
     print(json.dumps(out))
+    if args.profile:
+        with torch_threads(args.threads):
+            print_profile(configs[0][1], setup, args.seconds, args.profile)
+
+
+def print_profile(scenario, setup, seconds, top):
+    """cProfile of one more drive of ``scenario``: the ``top`` functions by cumulative time,
+    in ms per camera frame (the profiler's own overhead included)."""
+    import cProfile
+    import pstats
+
+    profiler = cProfile.Profile()
+    built = build_certified_driving_diagram(scenario, **setup)
+    profiler.enable()
+    result = drive(built, t_final_s=seconds)
+    profiler.disable()
+    frames = max(len(result.ticks.samples), 1)
+    stats = pstats.Stats(profiler)
+    rows = sorted(stats.stats.items(), key=lambda kv: kv[1][3], reverse=True)[:top]
+    print(f"profile of the conformal drive: {frames} frames; cumulative ms per frame "
+          "(calls per frame)")
+    for (path, line, name), (_, calls, _, cumulative, _) in rows:
+        where = f"{path.rsplit('/', 2)[-1] if '/' in path else path}:{line}({name})"
+        print(f"{1e3 * cumulative / frames:9.2f} ms {calls / frames:9.1f}  {where}")
 
 
 if __name__ == "__main__":

@@ -222,3 +222,22 @@ def test_shipped_nonrobust_classifier_is_at_least_95_percent_accurate(preset):
     assert "drake-cert train --preset" in model.meta["provenance"]["command"]
     probe_train = load_split(preset, "calibration", frames_per_class=100)
     assert mean_colour_probe_accuracy(probe_train, test) <= accuracy - 0.2
+
+
+def test_every_shipped_model_names_its_file_method_and_sweep():
+    """MANIFEST.yaml: each shipped file's SHA-256, training method and the sweep that chose it
+    (or that none did); a sweep's pick names the table that shows the comparison."""
+    import yaml
+
+    from drake_cert.perception.models import default_root, load_model_file, training_of
+
+    root = default_root()
+    manifest = yaml.safe_load((root / "MANIFEST.yaml").read_text())["models"]
+    assert set(manifest) == {str(p.relative_to(root)) for p in root.rglob("*.pt")}
+    for name, entry in manifest.items():
+        assert entry["sha256"] == file_sha256(root / name), name
+        assert entry["training"]["method"] == training_of(load_model_file(root / name))["method"]
+        assert entry["sweep"], name
+        if not entry["sweep"].startswith("none"):
+            table = entry["sweep"].split()[0]
+            assert (root.parents[2] / table).exists(), table

@@ -303,6 +303,9 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     return model, train_metrics, test_metrics, extra
 
 
+NO_SWEEP = "none (one configuration, trained by its command; no sweep compared candidates)"
+
+
 def update_manifest(root: Path, path: Path, meta: dict) -> None:
     """Record one model in ``<root>/MANIFEST.yaml``: command line, SHA-256, metrics."""
     from drake_cert.io import atomic_write_text
@@ -323,6 +326,7 @@ def update_manifest(root: Path, path: Path, meta: dict) -> None:
         "fit_seconds": meta["seconds"]["fit"],
         "training": meta.get("training", {}),
         "test_metrics": metrics,
+        "sweep": NO_SWEEP,
     }
     manifest = {"description": "Shipped perception models; each was made by its command "
                                "(provenance is also inside each file).",
