@@ -61,8 +61,9 @@ def _widths(text: str) -> tuple[int, ...]:
         values = tuple(int(v) for v in text.split(",") if v.strip())
     except ValueError:
         values = ()
-    if not values or min(values) < 1:
-        raise argparse.ArgumentTypeError(f"{text!r}: give whole numbers >= 1, comma-separated")
+    if not values or not all(2 <= v <= 256 for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give channel counts between 2 and 256, "
+                                         "comma-separated (train's --width)")
     return values
 
 

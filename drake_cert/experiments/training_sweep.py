@@ -1,7 +1,8 @@
 """The training sweep: which classifier certifies the most without certifying wrong more.
 
 For one preset and sigma, each candidate model (the baseline, by default the shipped model, and
-those ``drake-cert sweep`` trains: training method x lambda) is certified on the same held-out
+those ``drake-cert sweep`` trains: consistency at each lambda and the tail loss at each (q, beta),
+at each width) is certified on the same held-out
 test frames, clean and under the stability attack (SmoothAdv on g) at each budget eps, by
 :func:`~drake_cert.experiments.perception_eval.certify_classifier`, the function ``drake-cert
 certify`` runs. Each cell reports the three outcomes of the run-time label range at eps
@@ -11,8 +12,10 @@ wrong, abstain) with 95 % Clopper-Pearson intervals.
 The pick (:func:`pick_candidate`, docs/design.md 3.2): among the candidates whose
 certified-wrong share is, in every cell, not above the baseline's 95 % upper bound in that
 cell, the one that abstains least in the ranking cell (by default the stability attack at
-eps = sigma, the drive's budget); the baseline itself always qualifies, so the pick never
-certifies wrong more than today's model by more than the baseline's own sampling error.
+eps = sigma, the drive's budget), or with ``rank="tail"`` the one with the thinnest worst-label
+own-label tail (:func:`own_label_tail`, the frames that set the drive's conformal thresholds);
+the baseline itself always qualifies, so the pick never certifies wrong more than today's model
+by more than the baseline's own sampling error.
 """
 
 from __future__ import annotations
