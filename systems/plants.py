@@ -221,8 +221,8 @@ class LinearLateralPlant(_NamedInputPlant):
 
 
 def _single_track_system(vehicle: VehicleParams, stop_speed_mps: float) -> SymbolicVectorSystem:
-    """The body state [y, vy, psi, r] under the inputs :data:`PLANT_INPUTS`, frozen below the
-    stop speed (:func:`frozen_below_stop_speed`)."""
+    """The single track's state [e1, vy, e2, r] under the inputs :data:`PLANT_INPUTS`, frozen
+    below the stop speed (:func:`frozen_below_stop_speed`)."""
     x = sym.MakeVectorVariable(4, "x")
     u, c, mu, v, kappa = (sym.Variable(n) for n in PLANT_INPUTS)
     with np.errstate(invalid="ignore"):  # numpy flags object-array arithmetic spuriously
