@@ -94,7 +94,8 @@ def test_the_sweep_trains_certifies_writes_and_resumes(tmp_path, capsys):
     before = torch.get_num_threads()
     root = tmp_path / "sweep"
     argv = ["sweep", "--preset", "rtk-like", "--sigma", "0.25", "--lambdas", "none",
-            "--tails", "0.5:0.5", "--widths", "4", "--rank", "tail", "--frames", "3", "--n", "50", "--n0", "10", "--epochs", "1",
+            "--tails", "0.5:0.5", "--widths", "4", "--rank", "tail", "--frames", "3",
+            "--n", "50", "--n0", "10", "--epochs", "1",
             "--frames-per-class", "6", "--root", str(root)]
     try:
         assert cli.main(argv) == 0
@@ -124,7 +125,8 @@ def test_the_sweep_trains_certifies_writes_and_resumes(tmp_path, capsys):
 @pytest.mark.parametrize("extra, message", [(["--sigma", "0"], "sigma must be > 0"),
                                             (["--sigma", "0.25", "--lambdas", "x"], "'x'"),
                                             (["--sigma", "0.25", "--tails", "0.25"], "q:beta"),
-                                            (["--sigma", "0.25", "--widths", "0"], "between 2 and 256")])
+                                            (["--sigma", "0.25", "--widths", "0"],
+                                             "between 2 and 256")])
 def test_bad_sweep_options_give_one_line(tmp_path, capsys, extra, message):
     argv = ["sweep", "--preset", "rtk-like", "--root", str(tmp_path), *extra]
     try:

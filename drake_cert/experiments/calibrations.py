@@ -97,7 +97,8 @@ def map_calibrations(tasks: list[CalibrationTask], make_worker, ledger: Calibrat
 
     if progress is not None:
         progress(len(tasks) - len(todo))
-    (executor or LocalExecutor()).map(cpu_timed(make_worker), todo, progress, on_result=store_calibration)
+    (executor or LocalExecutor()).map(cpu_timed(make_worker), todo, progress,
+                                      on_result=store_calibration)
     return {(t.preset, t.sigma): stored[(t.preset, t.sigma)] for t in tasks}
 
 
