@@ -48,7 +48,7 @@ def _tails(text: str) -> tuple[tuple[float, float], ...]:
                       if item.strip())
     except ValueError:
         pairs = ((),)
-    if not pairs or any(len(p) != 2 or not (0 < p[0] <= 1 and 0 <= p[1] <= 1) for p in pairs):
+    if not pairs or any(len(p) != 2 for p in pairs):  # the ranges: default_candidates
         raise argparse.ArgumentTypeError(f"{text!r}: give q:beta pairs, comma-separated, with q "
                                          "in (0, 1] and beta in [0, 1], e.g. 0.25:0.5")
     return pairs
@@ -57,12 +57,15 @@ def _tails(text: str) -> tuple[tuple[float, float], ...]:
 def _widths(text: str) -> tuple[int, ...]:
     import argparse
 
+    from drake_cert.cli.train import WIDTH_RANGE
+
+    lo, hi = WIDTH_RANGE
     try:
         values = tuple(int(v) for v in text.split(",") if v.strip())
     except ValueError:
         values = ()
-    if not values or not all(2 <= v <= 256 for v in values):
-        raise argparse.ArgumentTypeError(f"{text!r}: give channel counts between 2 and 256, "
+    if not values or not all(lo <= v <= hi for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give channel counts between {lo} and {hi}, "
                                          "comma-separated (train's --width)")
     return values
 

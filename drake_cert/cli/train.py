@@ -28,6 +28,7 @@ ALL_PRESETS = ("carla-like", "rtk-like", "robotcar-like")
 ALL_SIGMAS = (0.0, 0.25, 0.5, 1.0)
 FRAME_PASSES = 30_000  # default epochs: enough to see ~30k frames, at least MIN_EPOCHS
 MIN_EPOCHS = 6
+WIDTH_RANGE = (2, 256)  # --width: channels of a classifier's first stage
 
 
 def configure(parser) -> None:
@@ -119,8 +120,9 @@ def run(args) -> int:
         raise ConfigError(f"--epochs {args.epochs} must be positive")
     if args.frames_per_class is not None and args.frames_per_class <= 0:
         raise ConfigError(f"--frames-per-class {args.frames_per_class} must be positive")
-    if not 2 <= args.width <= 256:
-        raise ConfigError(f"--width {args.width} must be between 2 and 256 channels")
+    lo, hi = WIDTH_RANGE
+    if not lo <= args.width <= hi:
+        raise ConfigError(f"--width {args.width} must be between {lo} and {hi} channels")
     if args.all:
         presets = [args.preset] if args.preset else list(ALL_PRESETS)
         sigmas = [check_sigma(args.sigma)] if args.sigma is not None else list(ALL_SIGMAS)
