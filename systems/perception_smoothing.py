@@ -48,7 +48,11 @@ from drake_cert.certification.conformal import (
     RobustConformalCalibration,
     sequential_label_set,
 )
-from drake_cert.certification.regressor import MedianDecision, MedianSmoothedRegressor
+from drake_cert.certification.regressor import (
+    MedianDecision,
+    MedianSmoothedRegressor,
+    point_value,
+)
 from drake_cert.certification.sampler import check_frame
 from drake_cert.certification.seeds import Purpose, child_seed
 from drake_cert.certification.statistics import (
@@ -336,7 +340,7 @@ class PerceptionSmoothing(LeafSystem):
                                            samples=self.n0 + self.n)
             if self.mode == "base":
                 with torch.inference_mode():
-                    value = float(self.model(x[None].to(self.device)).reshape(-1)[0])
+                    value = float(point_value(self.model(x[None].to(self.device)))[0])
                 if not math.isfinite(value):
                     raise CertificationError("regressor returned a non-finite stiffness")
                 return dataclasses.replace(base, base_value_n_per_rad=value)

@@ -7,6 +7,7 @@ this checks the code path and that it learns more than the class means.
 
 import math
 
+import pytest
 import torch
 
 from drake_cert.certification.regressor import MedianSmoothedRegressor
@@ -70,11 +71,39 @@ def test_end_to_end_regressor_beats_the_class_means_and_smooths(tmp_path):
     assert read_model_file(path)["kind"] == "regressor_net"
 
 
-def test_shipped_regressors_at_sigma_0_25_are_end_to_end_networks_in_n_per_rad():
+def test_band_regressor_learns_two_ends_and_saves_as_a_regressor(tmp_path):
+    train, test = frames(384, seed=0), frames(96, seed=1)
+    cfg = TrainConfig(epochs=6, width=8, batch_size=32, learning_rate=0.05, flip=False)
+    model, metrics = train_regressor_end_to_end(train, sigma=0.25, config=cfg, seed=1,
+                                                quantiles=(0.1, 0.9))
+    with torch.no_grad():
+        out = model(test.images)
+    assert out.shape == (96, 2) and metrics["quantiles"] == [0.1, 0.9]
+    lo, hi = out.min(1).values.double(), out.max(1).values.double()
+    y = test.stiffness_n_per_rad.double()
+    # An 80% band: it holds most true values and is narrower than the preset's envelope.
+    assert float(((lo <= y) & (y <= hi)).double().mean()) > 0.5
+    assert float((hi - lo).mean()) < 80_000
+    smooth = MedianSmoothedRegressor(model, 0.25)
+    median, lower, upper = smooth.certify_interval(test.images[0], 0.25, 2000, 0.001, 500,
+                                                   seed=0)
+    assert lower <= median <= upper
+    path = save_model(model, model_path(PRESET, "regress", 0.25, tmp_path),
+                      meta={"image_size": 12, "task": "regress", "kind": "band"})
+    assert read_model_file(path)["kind"] == "regressor_net"
+    with torch.no_grad():
+        assert torch.allclose(load_model(PRESET, "regress", 0.25, tmp_path)(test.images), out)
+    with pytest.raises(ValueError, match="two levels"):
+        train_regressor_end_to_end(train, sigma=0.25, config=cfg, quantiles=(0.9, 0.1))
+
+
+def test_shipped_regressors_at_sigma_0_25_are_band_networks_in_n_per_rad():
     for preset in ("carla-like", "rtk-like", "robotcar-like"):
         assert read_model_file(model_path(preset, "regress", 0.25))["kind"] == "regressor_net"
         model = load_model(preset, "regress", 0.25)
-        assert model.meta["regressor"] == "end_to_end"
+        assert model.meta["regressor"] == "band"
+        assert model.meta["training"] == {"method": "quantile_band_end_to_end",
+                                          "quantiles": [0.05, 0.95]}
         with torch.no_grad():
             out = model(torch.rand(2, 3, model.meta["image_size"], model.meta["image_size"]))
-        assert out.shape == (2, 1) and bool(((out > 1e4) & (out < 3e5)).all())
+        assert out.shape == (2, 2) and bool(((out > 1e4) & (out < 3e5)).all())

@@ -115,6 +115,9 @@ def test_tail_training_at_another_width_is_recorded_in_the_file(capsys, tmp_path
     (["--device", "tpu9"], "device"),
     (["--method", "tail", "--tail-fraction", "0"], "tail_fraction 0.0 must be in (0, 1]"),
     (["--width", "1"], "--width 1 must be between 2 and 256"),
+    (["--band-quantiles", "0.1", "0.9"], "--band-quantiles needs --task regress"),
+    (["--task", "regress", "--regressor", "band", "--band-quantiles", "0.9", "0.1"],
+     "must be two levels 0 < LO < HI < 1"),
 ])
 def test_bad_training_options_give_one_line(capsys, tmp_path, extra, message):
     _one_error_line(capsys, ["train", *TINY, "--sigma", "0.25", "--models", str(tmp_path),
@@ -134,6 +137,22 @@ def test_regressor_head_option_fits_the_ridge_head_on_frozen_features(capsys, tm
     assert isinstance(head, StiffnessRegressor)
     assert "--regressor head" in head.meta["provenance"]["command"]
     assert head(torch.rand(2, 3, 64, 64)).shape == (2,)
+
+
+def test_band_regressor_option_trains_two_ends_and_records_its_levels(capsys, tmp_path):
+    from drake_cert.perception.models import training_of
+
+    root = str(tmp_path)
+    assert cli.main(["train", *TINY, "--sigma", "0.25", "--models", root]) == 0
+    assert cli.main(["train", *TINY, "--task", "regress", "--regressor", "band",
+                     "--band-quantiles", "0.1", "0.9", "--sigma", "0.25", "--models",
+                     root]) == 0
+    band = load_model("rtk-like", "regress", 0.25, root)
+    assert training_of(band) == {"method": "quantile_band_end_to_end", "quantiles": [0.1, 0.9]}
+    assert "--regressor band --band-quantiles 0.1 0.9" in band.meta["provenance"]["command"]
+    assert band(torch.rand(2, 3, 64, 64)).shape == (2, 2)
+    metrics = band.meta["test_metrics"]
+    assert 0.0 <= metrics["test_band_coverage_noisy"] <= 1.0
 
 
 def test_generate_writes_a_sample_grid_and_class_folders(capsys, tmp_path):

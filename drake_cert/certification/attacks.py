@@ -30,6 +30,7 @@ import numpy as np
 import torch
 from scipy.stats import beta as beta_dist
 
+from drake_cert.certification.regressor import band_columns
 from drake_cert.errors import CertificationError
 from drake_cert.rng import torch_generator
 
@@ -226,15 +227,24 @@ def regressor_objective(model: torch.nn.Module, direction: float, sigma: float,
     """direction * f(x) (sigma = 0), or, against the smoothed model, direction * a statistic of
     the outputs over ``noise_draws`` noise draws: ``target="median"`` (default) the central
     mean (:func:`central_mean`, a differentiable surrogate of the median that the certificate
-    bounds), ``"mean"`` their average (the SmoothAdv expectation; kept for comparison)."""
+    bounds), ``"mean"`` their average (the SmoothAdv expectation; kept for comparison). A band
+    regressor's ([B, 2]) end under attack: the lower under SA (direction > 0), the upper under EA.
+    """
     if target not in REGRESSION_TARGETS:
         raise CertificationError(f"regression target {target!r} is not one of "
                                  f"{', '.join(REGRESSION_TARGETS)}")
 
+    def end(out: torch.Tensor) -> torch.Tensor:
+        # a band regressor: SA raises its lower end, EA lowers its upper end (the end that,
+        # moved, takes the interval off a true stiffness on the far side; DESIGN 3.2)
+        lo, hi = band_columns(out)
+        return lo if direction > 0 else hi
+
     def objective(x: torch.Tensor, gen: FrameNoise) -> torch.Tensor:
         if sigma == 0:
-            return direction * model(x).reshape(x.shape[0])
-        out = model(_noisy_copies(x, sigma, noise_draws, gen)).reshape(noise_draws, x.shape[0])
+            return direction * end(model(x))
+        out = end(model(_noisy_copies(x, sigma, noise_draws, gen))).reshape(noise_draws,
+                                                                            x.shape[0])
         if target == "median":
             return direction * harrell_davis_median(out)
         if target == "central":

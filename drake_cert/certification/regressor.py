@@ -50,11 +50,32 @@ class MedianDecision:
     sample_median: float | None = None  # lower median of the outputs drawn (N/rad); None at 0
 
 
+def band_columns(out: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A regressor's outputs as (lower, upper) [B] each, N/rad: a point regressor's [B] or
+    [B, 1] is both ends; a band regressor's [B, 2] gives the smaller and the larger of its
+    two outputs (a deterministic function of the base outputs, so smoothing it is sound)."""
+    if out.dim() == 1 or (out.dim() == 2 and out.shape[1] == 1):
+        y = out.reshape(-1)
+        return y, y
+    if out.dim() == 2 and out.shape[1] == 2:
+        return out.min(dim=1).values, out.max(dim=1).values
+    raise CertificationError(f"regressor returned shape {list(out.shape)}; expected [batch], "
+                             "[batch, 1] or a band's [batch, 2]")
+
+
+def point_value(out: torch.Tensor) -> torch.Tensor:
+    """A regressor's point prediction [B] (N/rad): the output itself, or a band's midpoint."""
+    lo, hi = band_columns(out)
+    return lo if lo is hi else (lo + hi) / 2
+
+
 class MedianSmoothedRegressor(SmoothedModel):
-    """Median smoothing ``h_0.5(x)`` of a scalar regressor (Chiang et al. 2020; DESIGN 3).
+    """Median smoothing ``h_0.5(x)`` of a scalar regressor (Chiang et al. 2020; DESIGN 3), or of
+    each end of a band regressor (``H_lo``, ``H_hi``; DESIGN 3.2).
 
     Args:
-        base: torch module mapping [B, C, H, W] frames to [B] or [B, 1] (stiffness, N/rad).
+        base: torch module mapping [B, C, H, W] frames to [B] or [B, 1] (stiffness, N/rad),
+            or to [B, 2] (a band's lower and upper stiffness, N/rad; :func:`band_columns`).
         sigma: noise level, > 0 (pixel units).
         device, compile, precision: as for :class:`SmoothedClassifier`.
     """
@@ -66,20 +87,36 @@ class MedianSmoothedRegressor(SmoothedModel):
 
     def sample_sorted(self, x: torch.Tensor, num: int, batch_size: int,
                       generator: torch.Generator | None = None) -> np.ndarray:
-        """The base model's outputs on ``num`` noisy copies of ``x``, ascending, float64 [num]."""
+        """The base model's outputs on ``num`` noisy copies of ``x``, ascending, float64:
+        [num] for a point regressor, [2, num] (lower ends, upper ends; each ascending) for a
+        band regressor."""
         with torch.inference_mode():
-            values = torch.empty(num, dtype=torch.float32, device=self.device)
-            start = 0
+            lows = torch.empty(num, dtype=torch.float32, device=self.device)
+            highs = torch.empty(num, dtype=torch.float32, device=self.device)
+            start, band = 0, False
             for out in self._sampler.outputs(x, num, batch_size, generator):
-                if not (out.dim() == 1 or (out.dim() == 2 and out.shape[1] == 1)):
-                    raise CertificationError(f"regressor returned shape {list(out.shape)}; "
-                                             "expected [batch] or [batch, 1]")
-                values[start:start + out.shape[0]] = out.reshape(-1)
-                start += out.shape[0]
-            values = torch.sort(values).values.cpu().numpy().astype(np.float64)
+                lo, hi = band_columns(out)
+                band = band or lo is not hi
+                lows[start:start + lo.shape[0]] = lo
+                highs[start:start + hi.shape[0]] = hi
+                start += lo.shape[0]
+            values = torch.stack([torch.sort(lows).values, torch.sort(highs).values]) if band \
+                else torch.sort(lows).values
+            values = values.cpu().numpy().astype(np.float64)
         if not np.isfinite(values).all():
             raise CertificationError("regressor returned NaN or infinite outputs")
         return values
+
+    def certified_bounds(self, x: torch.Tensor, eps: float, n: int, alpha: float,
+                         batch_size: int, generator: torch.Generator | None = None
+                         ) -> tuple[float, float, float]:
+        """``(median, lower, upper)`` of :meth:`certify_interval` from a given noise stream."""
+        y = self.sample_sorted(x, n, batch_size, generator)
+        lows, highs = (y[0], y[1]) if y.ndim == 2 else (y, y)
+        lower = percentile_bounds(lows, eps, self.sigma, alpha)[0]
+        upper = percentile_bounds(highs, eps, self.sigma, alpha)[1]
+        k = math.ceil(n / 2) - 1  # the lower empirical median (of each end, for a band)
+        return float((lows[k] + highs[k]) / 2), lower, upper
 
     def certify_interval(self, x: torch.Tensor, eps: float, n: int, alpha: float,
                          batch_size: int, *, seed: int | None = None
@@ -87,16 +124,17 @@ class MedianSmoothedRegressor(SmoothedModel):
         """Median and raw certified bounds ``(median, lower, upper)`` at frame x (DESIGN 3).
 
         With probability at least ``1 - alpha`` over the noise, ``lower <= h_0.5(z) <= upper``
-        for every frame z with ``||z - x||_2 <= eps`` (:func:`percentile_bounds`). ``median``
-        is the empirical median ``y_(ceil(n/2))``. Raises :class:`CertificationError` when n is
-        too small for eps/sigma. The run-time interval adds the conformal beta
-        (:func:`runtime_interval`).
+        for every frame z with ``||z - x||_2 <= eps`` (:func:`percentile_bounds`); for a band
+        regressor ``lower <= H_lo(z)`` and ``H_hi(z) <= upper`` (each end smoothed on its own,
+        one side each, so the same alpha). ``median`` is the empirical median
+        ``y_(ceil(n/2))`` (for a band, the midpoint of the two ends' empirical medians).
+        Raises :class:`CertificationError` when n is too small for eps/sigma. The run-time
+        interval adds the conformal beta (:func:`runtime_interval`).
         """
         percentile_bound_indices(n, eps, self.sigma, alpha)  # fail before sampling
         check_count(batch_size, "batch_size")
-        y = self.sample_sorted(x, n, batch_size, make_generator(seed, self.device))
-        lower, upper = percentile_bounds(y, eps, self.sigma, alpha)
-        return float(y[math.ceil(n / 2) - 1]), lower, upper
+        return self.certified_bounds(x, eps, n, alpha, batch_size,
+                                     make_generator(seed, self.device))
 
 
     def decide(self, x: torch.Tensor, eps: float, alpha: float, n_max: int, batch_size: int,
@@ -109,7 +147,8 @@ class MedianSmoothedRegressor(SmoothedModel):
         Chiang et al.: for ``||z - x|| <= eps``, ``h_pLow(x) <= h_0.5(z) <= h_pHigh(x)`` with
         ``pHigh = Phi(eps/sigma) = 1 - pLow``. With y the base output under noise at x:
         ``P(y <= hi) > pHigh`` implies ``h_pHigh(x) <= hi``, and ``P(y >= lo) > pHigh`` implies
-        ``h_pLow(x) >= lo``. Each is a Bernoulli mean, bounded at looks fixed in advance
+        ``h_pLow(x) >= lo`` (for a band regressor y is the upper end in the first and the lower
+        end in the second). Each is a Bernoulli mean, bounded at looks fixed in advance
         (:func:`look_plan`; alpha split over the m distinct ends tested and the looks), so the
         decision may stop at any look: with probability at least ``1 - alpha``, a certified
         ``(lo, hi)`` holds ``h_0.5(z)`` for every such z.
@@ -133,8 +172,8 @@ class MedianSmoothedRegressor(SmoothedModel):
         check_frame(x)
         check_frame_size(x, self._sampler.base)
         with torch.inference_mode():
-            base_value = float(self._sampler.base(x.to(self.device, torch.float32)[None])
-                               .reshape(-1)[0])
+            base_value = float(point_value(
+                self._sampler.base(x.to(self.device, torch.float32)[None]))[0])
         if not math.isfinite(base_value):
             raise CertificationError("regressor returned a non-finite output on the frame")
         candidates = [(float(lo), float(hi)) for lo, hi in intervals(base_value)]
@@ -153,15 +192,15 @@ class MedianSmoothedRegressor(SmoothedModel):
         with torch.inference_mode():
             for look in plan.looks:
                 for out in self._sampler.outputs(x, look - t, int(batch_size), gen):
-                    y = out.reshape(-1)
-                    if not torch.isfinite(y).all():
+                    y_lo, y_hi = band_columns(out)
+                    if not (torch.isfinite(y_lo).all() and torch.isfinite(y_hi).all()):
                         raise CertificationError("regressor returned NaN or infinite outputs")
                     for hi in his:
-                        below[hi] += int((y <= hi).sum())
+                        below[hi] += int((y_hi <= hi).sum())
                     for lo in los:
-                        above[lo] += int((y >= lo).sum())
-                    t += int(y.shape[0])
-                    drawn.append(y.to("cpu", torch.float64).numpy())
+                        above[lo] += int((y_lo >= lo).sum())
+                    t += int(y_lo.shape[0])
+                    drawn.append(((y_lo + y_hi) / 2).to("cpu", torch.float64).numpy())
                 hi_b = {hi: plan.bounds(below[hi], t) for hi in his}
                 lo_b = {lo: plan.bounds(above[lo], t) for lo in los}
                 live = next((i for i, (lo, hi) in enumerate(candidates)
@@ -213,7 +252,8 @@ def calibrate_conformal(regressor: MedianSmoothedRegressor, frames: torch.Tensor
     For each frame: ``[L_i, U_i]``, the order-statistic interval of the smoothed median
     (eps = 0 bounds at level ``alpha_m``, n samples), the score
     ``max(y_i - L_i, U_i - y_i)`` with y_i the true stiffness, and per true label the
-    conformal quantile at ``alpha_c`` (:func:`conformal_beta`). ``sampling``
+    conformal quantile at ``alpha_c`` (:func:`conformal_beta`). For a band regressor L_i is
+    the lower bound of ``H_hi`` and U_i the upper bound of ``H_lo`` (DESIGN 3.2). ``sampling``
     (:class:`CalibrationSampling`): n samples per frame in batches; noise: one stream from
     ``sampling.seed`` for all frames, or one per frame from ``sampling.frame_seeds``
     (``seeds.stream_seed(root, i, "calibration", split="calibration")``).
@@ -233,7 +273,10 @@ def calibrate_conformal(regressor: MedianSmoothedRegressor, frames: torch.Tensor
         if frame_seeds is not None:
             gen = make_generator(int(frame_seeds[i]), regressor.device)
         y = regressor.sample_sorted(frames[i], n, batch_size, gen)
-        lower[i], upper[i] = percentile_bounds(y, 0.0, regressor.sigma, alpha_m)
+        lows, highs = (y[0], y[1]) if y.ndim == 2 else (y, y)
+        # the score's L bounds H_hi from below and its U bounds H_lo from above (eps = 0)
+        lower[i] = percentile_bounds(highs, 0.0, regressor.sigma, alpha_m)[0]
+        upper[i] = percentile_bounds(lows, 0.0, regressor.sigma, alpha_m)[1]
     scores = conformity_score(np.asarray(stiffness_n_per_rad, dtype=np.float64), lower, upper)
     return ConformalCalibration(conformal_beta(scores, np.asarray(labels), alpha_c),
                                 alpha_c=alpha_c, alpha_m=alpha_m, n=n, sigma=regressor.sigma,

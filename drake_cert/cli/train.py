@@ -37,9 +37,11 @@ def configure(parser) -> None:
                         help="classify: noise-augmented classifier; regress: stiffness "
                              "regressor (needs the classifier at the same sigma, see "
                              "--regressor); default classify, both with --all")
-    parser.add_argument("--regressor", choices=("net", "head"), default="net",
+    parser.add_argument("--regressor", choices=("net", "head", "band"), default="net",
                         help="regress: 'net' trains the whole one-output network end to end "
                              "under the noise (backbone initialised from the classifier); "
+                             "'band' the same network with two outputs, the stiffness's "
+                             "lower and upper conditional quantiles (pinball loss); "
                              "'head' fits a ridge head on the classifier's frozen features "
                              "(default: net)")
     parser.add_argument("--sigma", default=None,
@@ -63,6 +65,10 @@ def configure(parser) -> None:
                         help="tail: the worst share q of a batch's frames (default 0.25)")
     parser.add_argument("--tail-weight", type=float, default=0.5,
                         help="tail: weight beta of their mean loss (default 0.5)")
+    parser.add_argument("--band-quantiles", type=float, nargs=2, default=None,
+                        metavar=("LO", "HI"),
+                        help="band: the two ends' quantile levels, 0 < LO < HI < 1 "
+                             "(default 0.05 0.95)")
     parser.add_argument("--width", type=int, default=16,
                         help="classifier: channels of the network's first stage, then 2x and "
                              "4x (default 16; the run-time cost grows about as its square)")
@@ -123,6 +129,12 @@ def run(args) -> int:
     lo, hi = WIDTH_RANGE
     if not lo <= args.width <= hi:
         raise ConfigError(f"--width {args.width} must be between {lo} and {hi} channels")
+    band_q = getattr(args, "band_quantiles", None)
+    if band_q is not None and not 0.0 < band_q[0] < band_q[1] < 1.0:
+        raise ConfigError(f"--band-quantiles {band_q[0]:g} {band_q[1]:g} must be two levels "
+                          "0 < LO < HI < 1")
+    if band_q is not None and getattr(args, "regressor", "net") != "band":
+        raise ConfigError("--band-quantiles needs --task regress --regressor band")
     if args.all:
         presets = [args.preset] if args.preset else list(ALL_PRESETS)
         sigmas = [check_sigma(args.sigma)] if args.sigma is not None else list(ALL_SIGMAS)
@@ -163,9 +175,12 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
     from drake_cert.perception.models import sigma_tag
 
     cmd = ["drake-cert", "train", "--preset", preset, "--task", task, "--sigma", sigma_tag(sigma)]
-    head = task == "regress" and getattr(args, "regressor", "net") == "head"
-    if head:
-        cmd += ["--regressor", "head"]
+    regressor = getattr(args, "regressor", "net") if task == "regress" else "net"
+    head = regressor == "head"
+    if regressor != "net":
+        cmd += ["--regressor", regressor]
+    if regressor == "band" and getattr(args, "band_quantiles", None) is not None:
+        cmd += ["--band-quantiles", *(f"{q:g}" for q in args.band_quantiles)]
     if args.epochs is not None and not head:
         cmd += ["--epochs", str(args.epochs)]
     if task == "classify" and getattr(args, "method", "gaussian") == "consistency":
@@ -266,6 +281,14 @@ def _fit_classifier(train, test, sigma: float, args, ckpt: Path, name: str):
     return model, train_metrics, test_metrics
 
 
+def band_quantiles(args) -> tuple[float, float]:
+    """The band regressor's two quantile levels: ``--band-quantiles`` or the default."""
+    from drake_cert.perception.training import BAND_QUANTILES
+
+    chosen = getattr(args, "band_quantiles", None)
+    return tuple(float(q) for q in chosen) if chosen is not None else BAND_QUANTILES
+
+
 def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "regress"):
     """The stiffness regressor: end to end (``--regressor net``, default: a one-output
     network, backbone initialised from the classifier, trained under the noise with the
@@ -275,6 +298,7 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     from drake_cert.perception.models import file_sha256, load_model
     from drake_cert.perception.training import (
         TrainRun,
+        evaluate_band,
         evaluate_mae,
         evaluate_mse,
         fit_regressor,
@@ -284,6 +308,7 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
     cpath = _require_classifier(preset, sigma, args.models)
     classifier = load_model(preset, "classify", sigma, args.models)
     sha = file_sha256(cpath)
+    band = getattr(args, "regressor", "net") == "band"
     if getattr(args, "regressor", "net") == "head":
         model, train_metrics = fit_regressor(classifier, train, sigma=sigma, seed=args.seed)
         extra = {"regressor": "head", "classifier_file": cpath.name, "classifier_sha256": sha,
@@ -293,15 +318,20 @@ def _fit_regressor(preset: str, train, test, sigma: float, args, name: str = "re
         model, train_metrics = train_regressor_end_to_end(
             train, sigma=sigma, epochs=epochs, seed=args.seed, init=classifier,
             run=TrainRun(progress=True, description=name,
-                         device=getattr(args, "device", "cpu")))
-        extra = {"regressor": "end_to_end", "init_file": cpath.name, "init_sha256": sha,
-                 "training": {"method": "huber_end_to_end"}}
+                         device=getattr(args, "device", "cpu")),
+            quantiles=band_quantiles(args) if band else None)
+        method = ({"method": "quantile_band_end_to_end", "quantiles": list(band_quantiles(args))}
+                  if band else {"method": "huber_end_to_end"})
+        extra = {"regressor": "band" if band else "end_to_end", "init_file": cpath.name,
+                 "init_sha256": sha, "training": method}
     test_metrics = {"test_mse_clean_n_per_rad_sq": evaluate_mse(model, test),
                     "test_mse_noisy_n_per_rad_sq": evaluate_mse(model, test, sigma=sigma,
                                                                 seed=args.seed),
                     "test_mae_noisy_n_per_rad": evaluate_mae(model, test, sigma=sigma,
                                                              seed=args.seed),
                     "test_frames": len(test)}
+    if band:
+        test_metrics.update(evaluate_band(model, test, sigma=sigma, seed=args.seed))
     return model, train_metrics, test_metrics, extra
 
 

@@ -361,6 +361,7 @@ class NeverCertifies:
     def perceive(self, frame, time_s: float):
         import torch
 
+        from drake_cert.certification.regressor import point_value
         from drake_cert.systems.perception_smoothing import PerceptionResult
 
         with torch.inference_mode():
@@ -370,7 +371,7 @@ class NeverCertifies:
             time_s=float(time_s), tick=frame.tick, position_m=frame.position_m, frame_ok=True,
             error="", mode="certified", task=self.task,
             base_label=int(out.argmax(dim=1)[0]) if classify else None,
-            base_value_n_per_rad=None if classify else float(out.reshape(-1)[0]),
+            base_value_n_per_rad=None if classify else float(point_value(out)[0]),
             label_index=frame.label_index, stiffness_n_per_rad=frame.stiffness_n_per_rad,
             friction_mu=frame.friction_mu, attack=frame.attack)
 

@@ -158,13 +158,15 @@ def file_sha256(path: str | Path) -> str:
 def save_model(model: nn.Module, path: str | Path, *, meta: dict) -> Path:
     """Write a classifier or regressor atomically with ``meta`` (provenance, labels, metrics).
 
-    A :class:`SmallResNet` with one output is stored whole as kind "regressor_net" (an
-    end-to-end regressor, output N/rad). A head regressor's meta must name its classifier
+    A :class:`SmallResNet` with one output, or any whose meta says task "regress" (a band
+    regressor's two outputs), is stored whole as kind "regressor_net" (an end-to-end
+    regressor, outputs N/rad). A head regressor's meta must name its classifier
     file (``classifier_file``, relative to the regressor's folder) and its SHA-256
     (``classifier_sha256``); only the head is stored.
     """
-    if isinstance(model, SmallResNet):  # one output: an end-to-end stiffness regressor
-        kind = "regressor_net" if model.num_classes == 1 else "classifier"
+    if isinstance(model, SmallResNet):  # one output, or a regress task: an end-to-end regressor
+        regress = model.num_classes == 1 or meta.get("task") == "regress"
+        kind = "regressor_net" if regress else "classifier"
         payload = {"kind": kind, "num_classes": model.num_classes,
                    "width": model.width,
                    "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()}}

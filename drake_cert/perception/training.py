@@ -409,24 +409,58 @@ def evaluate_accuracy(model: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
     return float((logits.argmax(1) == frames.labels).float().mean())
 
 
+def point_prediction(out: torch.Tensor) -> torch.Tensor:
+    """A regressor's point prediction [B] (N/rad, float64) from its outputs: [B] or [B, 1] as
+    they are, a band regressor's [B, 2] (lower, upper) by its midpoint."""
+    if out.dim() == 2 and out.shape[1] == 2:
+        return out.double().mean(dim=1)
+    return out.double().reshape(-1)
+
+
 def evaluate_mse(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
                  seed: int = 0) -> float:
-    """Mean squared error of predicted vs true stiffness, in (N/rad)^2 (outputs [B] or [B, 1])."""
-    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double().reshape(-1)
+    """Mean squared error of predicted vs true stiffness, in (N/rad)^2
+    (:func:`point_prediction`)."""
+    pred = point_prediction(predict_logits(regressor, frames.images, sigma=sigma, seed=seed))
     return float(((pred - frames.stiffness_n_per_rad.double()) ** 2).mean())
 
 
 def evaluate_mae(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
                  seed: int = 0) -> float:
-    """Mean absolute error of predicted vs true stiffness, in N/rad (outputs [B] or [B, 1])."""
-    pred = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double().reshape(-1)
+    """Mean absolute error of predicted vs true stiffness, in N/rad (:func:`point_prediction`)."""
+    pred = point_prediction(predict_logits(regressor, frames.images, sigma=sigma, seed=seed))
     return float((pred - frames.stiffness_n_per_rad.double()).abs().mean())
+
+
+def evaluate_band(regressor: nn.Module, frames: FrameSet, *, sigma: float = 0.0,
+                  seed: int = 0) -> dict:
+    """A band regressor's raw band (no smoothing, no conformal step) on ``frames``: the share
+    of frames whose [lower, upper] output holds the true stiffness and its mean width (N/rad)."""
+    out = predict_logits(regressor, frames.images, sigma=sigma, seed=seed).double()
+    lo, hi = out.min(dim=1).values, out.max(dim=1).values
+    y = frames.stiffness_n_per_rad.double()
+    return {"test_band_coverage_noisy": float(((lo <= y) & (y <= hi)).double().mean()),
+            "test_band_width_noisy_n_per_rad": float((hi - lo).mean())}
+
+
+def pinball_loss(pred: torch.Tensor, target: torch.Tensor,
+                 quantiles: tuple[float, ...]) -> torch.Tensor:
+    """Mean quantile (pinball) loss of ``pred`` [B, Q] against ``target`` [B], column j at
+    level ``quantiles[j]``: ``max(tau (y - q), (tau - 1)(y - q))`` (Koenker and Bassett 1978)."""
+    diff = target[:, None] - pred
+    tau = torch.tensor(quantiles, dtype=pred.dtype, device=pred.device)[None]
+    return torch.maximum(tau * diff, (tau - 1.0) * diff).mean()
+
+
+BAND_QUANTILES = (0.05, 0.95)  # levels of a band regressor's two outputs (DESIGN 3.2)
 
 
 def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
                                seed: int = 0, config: TrainConfig | None = None,
                                init: SmallResNet | None = None,
-                               run: TrainRun | None = None) -> tuple[SmallResNet, dict]:
+                               run: TrainRun | None = None,
+                               quantiles: tuple[float, float] | None = None
+                               ) -> tuple[SmallResNet, dict]:
     """A stiffness regressor trained end to end under Gaussian noise (DESIGN 3.2).
 
     The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
@@ -441,7 +475,11 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     ``run.device`` is where it trains (streams drawn on the CPU; the model is returned on the
     CPU); it takes no checkpoint.
     ``save_model`` stores it like a classifier with one output (``num_classes`` 1).
-    Returns the model (eval mode) and metrics: final-epoch training MSE in (N/rad)^2, seconds.
+    ``quantiles`` (a band regressor, e.g. :data:`BAND_QUANTILES`): two outputs, the lower and
+    upper conditional quantiles of the stiffness at those levels, trained with
+    :func:`pinball_loss` instead of Huber; ``model(x)`` is then [B, 2] N/rad.
+    Returns the model (eval mode) and metrics: final-epoch training MSE in (N/rad)^2 (of the
+    band's midpoint for a band regressor), seconds.
     """
     import time
 
@@ -455,7 +493,10 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     if epochs is not None:
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
     torch.manual_seed(seed)
-    model = SmallResNet(1, width=cfg.width)
+    if quantiles is not None and not (len(quantiles) == 2
+                                      and 0.0 < quantiles[0] < quantiles[1] < 1.0):
+        raise ValueError(f"quantiles = {quantiles!r} must be two levels 0 < lo < hi < 1")
+    model = SmallResNet(1 if quantiles is None else 2, width=cfg.width)
     if init is not None:
         model.backbone.load_state_dict(init.backbone.state_dict())
     model = model.to(device)
@@ -485,8 +526,13 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
             x = add_gaussian_noise(x, sigma, gen)
             for group in optimizer.param_groups:
                 group["lr"] = learning_rate_at(epoch * steps_per_epoch + b, total, cfg)
-            pred = model(x.to(device)).squeeze(-1)
-            loss = loss_fn(pred, scaled[idx.to(device)])
+            pred = model(x.to(device))
+            if quantiles is None:
+                pred = pred.squeeze(-1)
+                loss = loss_fn(pred, scaled[idx.to(device)])
+            else:
+                loss = pinball_loss(pred, scaled[idx.to(device)], quantiles)
+                pred = pred.mean(dim=1)
             optimizer.zero_grad(set_to_none=True)
             loss.backward()
             optimizer.step()
@@ -504,5 +550,6 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     metrics = {"train_mse_n_per_rad_sq": mse, "epochs": cfg.epochs, "steps": total,
                "train_seconds": round(time.perf_counter() - start, 2), "train_frames": n,
                "init": "classifier backbone" if init is not None else "fresh",
+               "quantiles": list(quantiles) if quantiles is not None else None,
                "device": str(device), "config": dataclasses.asdict(cfg)}
     return model, metrics
