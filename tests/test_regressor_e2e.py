@@ -5,6 +5,7 @@ tests/test_attacks.py): the full regressor is trained for real by the command in
 this checks the code path and that it learns more than the class means.
 """
 
+import dataclasses
 import math
 
 import pytest
@@ -93,6 +94,12 @@ def test_band_regressor_learns_two_ends_and_saves_as_a_regressor(tmp_path):
     assert read_model_file(path)["kind"] == "regressor_net"
     with torch.no_grad():
         assert torch.allclose(load_model(PRESET, "regress", 0.25, tmp_path)(test.images), out)
+    # initialised from a classifier of another width, it takes that width (a width-8 backbone)
+    from drake_cert.perception.models import SmallResNet
+
+    narrow, _ = train_regressor_end_to_end(train, sigma=0.25, config=dataclasses.replace(
+        cfg, epochs=1, width=16), seed=1, init=SmallResNet(3, width=4), quantiles=(0.1, 0.9))
+    assert narrow.width == 4
     with pytest.raises(ValueError, match="two levels"):
         train_regressor_end_to_end(train, sigma=0.25, config=cfg, quantiles=(0.9, 0.1))
 

@@ -466,7 +466,8 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     The frozen-feature ridge head (:func:`fit_regressor`) mostly predicts class means; here the
     whole network learns the stiffness, which the generator ties to the rendering intensity
     within a condition. Model: a :class:`SmallResNet` with one output (backbone copied from
-    ``init``, e.g. the classifier at the same sigma, when given). Loss: Huber (smooth L1,
+    ``init``, e.g. the classifier at the same sigma, when given, at its width; else
+    ``config.width``). Loss: Huber (smooth L1,
     beta 0.1) on ``(y - mean y) / 1e5`` at ``x + N(0, sigma^2 I)`` (plus flips), with the
     classifier's schedule (:class:`TrainConfig`, :func:`epoch_generator` streams). After
     training the output layer is rescaled to N/rad, so ``model(x)`` is [B, 1] stiffness in
@@ -496,7 +497,9 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
     if quantiles is not None and not (len(quantiles) == 2
                                       and 0.0 < quantiles[0] < quantiles[1] < 1.0):
         raise ValueError(f"quantiles = {quantiles!r} must be two levels 0 < lo < hi < 1")
-    model = SmallResNet(1 if quantiles is None else 2, width=cfg.width)
+    # the backbone is the init's (its width, e.g. a width-8 classifier), else cfg.width
+    width = init.width if init is not None else cfg.width
+    model = SmallResNet(1 if quantiles is None else 2, width=width)
     if init is not None:
         model.backbone.load_state_dict(init.backbone.state_dict())
     model = model.to(device)
