@@ -236,7 +236,7 @@ def regressor_objective(model: torch.nn.Module, direction: float, sigma: float,
 
     def end(out: torch.Tensor) -> torch.Tensor:
         # a band regressor: SA raises its lower end, EA lowers its upper end (the end that,
-        # moved, takes the interval off a true stiffness on the far side; DESIGN 3.2)
+        # moved, takes the interval off a true stiffness on the far side; DESIGN 3.5)
         lo, hi = band_columns(out)
         return lo if direction > 0 else hi
 

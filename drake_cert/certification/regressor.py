@@ -1,5 +1,5 @@
-"""Median smoothing of a stiffness regressor (Chiang et al. 2020; DESIGN 3) and its
-split-conformal calibration (Mondrian per label).
+"""Median smoothing of a stiffness regressor, or of each end of a band regressor (Chiang et al.
+2020; DESIGN 3, 3.5), and its split-conformal calibration (Mondrian per label).
 """
 
 from __future__ import annotations
@@ -71,7 +71,7 @@ def point_value(out: torch.Tensor) -> torch.Tensor:
 
 class MedianSmoothedRegressor(SmoothedModel):
     """Median smoothing ``h_0.5(x)`` of a scalar regressor (Chiang et al. 2020; DESIGN 3), or of
-    each end of a band regressor (``H_lo``, ``H_hi``; DESIGN 3.2).
+    each end of a band regressor (``H_lo``, ``H_hi``; DESIGN 3.5).
 
     Args:
         base: torch module mapping [B, C, H, W] frames to [B] or [B, 1] (stiffness, N/rad),
@@ -253,7 +253,7 @@ def calibrate_conformal(regressor: MedianSmoothedRegressor, frames: torch.Tensor
     (eps = 0 bounds at level ``alpha_m``, n samples), the score
     ``max(y_i - L_i, U_i - y_i)`` with y_i the true stiffness, and per true label the
     conformal quantile at ``alpha_c`` (:func:`conformal_beta`). For a band regressor L_i is
-    the lower bound of ``H_hi`` and U_i the upper bound of ``H_lo`` (DESIGN 3.2). ``sampling``
+    the lower bound of ``H_hi`` and U_i the upper bound of ``H_lo`` (DESIGN 3.5). ``sampling``
     (:class:`CalibrationSampling`): n samples per frame in batches; noise: one stream from
     ``sampling.seed`` for all frames, or one per frame from ``sampling.frame_seeds``
     (``seeds.stream_seed(root, i, "calibration", split="calibration")``).

@@ -452,7 +452,7 @@ def pinball_loss(pred: torch.Tensor, target: torch.Tensor,
     return torch.maximum(tau * diff, (tau - 1.0) * diff).mean()
 
 
-BAND_QUANTILES = (0.05, 0.95)  # levels of a band regressor's two outputs (DESIGN 3.2)
+BAND_QUANTILES = (0.05, 0.95)  # levels of a band regressor's two outputs (DESIGN 3.5)
 
 
 def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int | None = None,
