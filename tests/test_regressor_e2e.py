@@ -104,13 +104,18 @@ def test_band_regressor_learns_two_ends_and_saves_as_a_regressor(tmp_path):
         train_regressor_end_to_end(train, sigma=0.25, config=cfg, quantiles=(0.9, 0.1))
 
 
-def test_shipped_regressors_at_sigma_0_25_are_band_networks_in_n_per_rad():
+@pytest.mark.parametrize("sigma", [0.25, 0.5, 1.0])
+def test_shipped_smoothed_regressors_are_band_networks_in_n_per_rad(sigma):
     for preset in ("carla-like", "rtk-like", "robotcar-like"):
-        assert read_model_file(model_path(preset, "regress", 0.25))["kind"] == "regressor_net"
-        model = load_model(preset, "regress", 0.25)
+        assert read_model_file(model_path(preset, "regress", sigma))["kind"] == "regressor_net"
+        model = load_model(preset, "regress", sigma)
         assert model.meta["regressor"] == "band"
         assert model.meta["training"] == {"method": "quantile_band_end_to_end",
                                           "quantiles": [0.05, 0.95]}
         with torch.no_grad():
             out = model(torch.rand(2, 3, model.meta["image_size"], model.meta["image_size"]))
-        assert out.shape == (2, 2) and bool(((out > 1e4) & (out < 3e5)).all())
+        # N/rad, not the training's 1e5 units: the band's midpoint is a stiffness (an end may
+        # reach past the envelope on frames unlike the training ones; the run-time interval
+        # is clipped to it)
+        mid = out.mean(dim=1)
+        assert out.shape == (2, 2) and bool(((mid > 1e4) & (mid < 3e5)).all())
