@@ -44,6 +44,21 @@ def within_class_mse(fs: FrameSet) -> float:
     return err / len(fs)
 
 
+def smooths_and_round_trips(model, test: FrameSet, tmp_path, kind: str, outputs) -> None:
+    """h's certified bounds bracket its median at a test frame, and the model saves as a
+    "regressor_net" file that loads back to the same outputs."""
+    smooth = MedianSmoothedRegressor(model, 0.25)
+    median, lower, upper = smooth.certify_interval(test.images[0], 0.25, 2000, 0.001, 500,
+                                                   seed=0)
+    assert lower <= median <= upper
+    path = save_model(model, model_path(PRESET, "regress", 0.25, tmp_path),
+                      meta={"image_size": 12, "task": "regress", "kind": kind})
+    assert read_model_file(path)["kind"] == "regressor_net"
+    with torch.no_grad():
+        assert torch.allclose(load_model(PRESET, "regress", 0.25, tmp_path)(test.images),
+                              outputs)
+
+
 def test_end_to_end_regressor_beats_the_class_means_and_smooths(tmp_path):
     train, test = frames(384, seed=0), frames(96, seed=1)
     cfg = TrainConfig(epochs=6, width=8, batch_size=32, learning_rate=0.05, flip=False)
@@ -59,17 +74,8 @@ def test_end_to_end_regressor_beats_the_class_means_and_smooths(tmp_path):
     # (N/rad)^2 here). Measured 23e6 on an AVX2 CPU (1 and 2 threads): training's arithmetic
     # depends on the CPU, so the bound is the claim, not a ratio.
     assert mse < within_class_mse(test)
-    smooth = MedianSmoothedRegressor(model, 0.25)
-    median, lower, upper = smooth.certify_interval(test.images[0], 0.25, 2000, 0.001, 500,
-                                                   seed=0)
-    assert lower <= median <= upper
-    # It saves and loads with the model files' code path (a one-output SmallResNet).
-    path = save_model(model, model_path(PRESET, "regress", 0.25, tmp_path),
-                      meta={"image_size": 12, "task": "regress", "kind": "end_to_end"})
-    loaded = load_model(PRESET, "regress", 0.25, tmp_path)
-    with torch.no_grad():
-        assert torch.allclose(loaded(test.images), pred)
-    assert read_model_file(path)["kind"] == "regressor_net"
+    # It smooths, and saves and loads with the model files' code path (a one-output SmallResNet).
+    smooths_and_round_trips(model, test, tmp_path, "end_to_end", pred)
 
 
 def test_band_regressor_learns_two_ends_and_saves_as_a_regressor(tmp_path):
@@ -85,15 +91,7 @@ def test_band_regressor_learns_two_ends_and_saves_as_a_regressor(tmp_path):
     # An 80% band: it holds most true values and is narrower than the preset's envelope.
     assert float(((lo <= y) & (y <= hi)).double().mean()) > 0.5
     assert float((hi - lo).mean()) < 80_000
-    smooth = MedianSmoothedRegressor(model, 0.25)
-    median, lower, upper = smooth.certify_interval(test.images[0], 0.25, 2000, 0.001, 500,
-                                                   seed=0)
-    assert lower <= median <= upper
-    path = save_model(model, model_path(PRESET, "regress", 0.25, tmp_path),
-                      meta={"image_size": 12, "task": "regress", "kind": "band"})
-    assert read_model_file(path)["kind"] == "regressor_net"
-    with torch.no_grad():
-        assert torch.allclose(load_model(PRESET, "regress", 0.25, tmp_path)(test.images), out)
+    smooths_and_round_trips(model, test, tmp_path, "band", out)
     # initialised from a classifier of another width, it takes that width (a width-8 backbone)
     from drake_cert.perception.models import SmallResNet
 
