@@ -271,13 +271,12 @@ def _write_reproduction(args, config, out, store, designs, outcome: _Outcome) ->
                                     load_conditions(), plots=not args.no_plots, designs=designs)
     document = json.loads((out / "claims.json").read_text())
     holds = {p: c["holds"] for p, c in claims.preset_claims(document).items()}
-    paper = document.get("paper_claims", [])
+    paper = document["paper_claims"]
     print(json.dumps({"out": str(out), "wall_s": round(wall, 1),
                       "cpu_s": round(sum(cpu.values()), 1), "cells": len(summary),
                       "frame_cells": len(rows), "frames_done": done, "complete": complete,
-                      "paper_claims": paper_claims.verdict_counts(paper),
-                      "paper_claims_failing": [paper_claims.label(c) for c in paper
-                                               if c["holds"] is False],
+                      "paper_claims": paper["counts"],
+                      "paper_claims_failing": paper_claims.failing(paper),
                       "claims_hold": holds, "files": [str(p) for p in written]}))
 
 

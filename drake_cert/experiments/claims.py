@@ -4,7 +4,7 @@
 :mod:`drake_cert.experiments.headline` (per pipeline, departures not conditioned on the truth,
 with intervals that account for clustering by frame, beside f at the same budget) and its split
 by whether the certified label range holds the true label, a diagnostic for every pipeline.
-Then the paper's claims per preset and budget with verdicts (:mod:`.paper_claims`), then, per
+Then the paper's claims, one verdict each at its budget (:mod:`.paper_claims`), then, per
 preset, over the frames the run holds (1-2 the paper's, 3-4 the project's own criteria):
 1. the non-robust pipeline f is unstable under the safety attack (SA): the share of f's
    episodes that left the lane, per budget;
@@ -231,8 +231,8 @@ def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headl
                     seed: int = headline.SEED) -> dict:
     """What ``claims.json`` holds, in this order: ``headline`` (:func:`headline.headline`),
     ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), ``paper_claims``
-    (the paper's claims per preset and budget, :func:`paper_claims.paper_claims`), then the
-    figures 1-4 per preset (:func:`check_claims`, one key per preset)."""
+    (one verdict per claim of the paper at its budget, :func:`paper_claims.paper_claims`), then
+    the figures 1-4 per preset (:func:`check_claims`, one key per preset)."""
     return dict(headline=headline.headline(rows, resamples=resamples, seed=seed),
                 truth_conditioned_diagnostic=headline.truth_conditioned(rows),
                 paper_claims=paper_claims.paper_claims(rows),
@@ -246,15 +246,16 @@ def preset_claims(document: dict) -> dict:
 
 
 def document_markdown(document: dict, main_eps: float, interval: str = "safe_set") -> str:
-    """``claims.md``: the headline and its diagnostic first, then the paper's claims per preset
-    and budget with their verdicts, then the figures per preset (the paper's claims about f,
-    and the project's own criteria for g); ``interval``: the run's interval for ``g`` (names
-    it in the headline)."""
+    """``claims.md``: the headline and its diagnostic first, then the paper's claims with one
+    verdict each at the paper's budget (secondary rows under it), then the figures per preset
+    (the paper's claims about f, and the project's own criteria for g); ``interval``: the
+    run's interval for ``g`` (names it in the headline)."""
     text = headline.markdown(document["headline"], document["truth_conditioned_diagnostic"],
                              main_eps=main_eps, names=headline.display_names(interval))
     if document.get("paper_claims"):
-        text += ("\n**The paper's claims, per data set and budget** (`paper_claims` in "
-                 "claims.json)\n\n" + paper_claims.markdown(document["paper_claims"]))
+        text += ("\n**The paper's claims, one verdict each at the paper's budget** "
+                 "(`paper_claims` in claims.json)\n\n"
+                 + paper_claims.markdown(document["paper_claims"]))
     return (text + "\n**Figures per preset: f under attack (the paper's claims 1-2) and the "
             "project's own criteria for g (3-4, docs/design.md 7.3; not the paper's)**\n\n"
             + markdown(preset_claims(document), main_eps))
