@@ -4,8 +4,9 @@ Drives the shipped dry_to_snow route for ``--seconds`` of simulated time with th
 10 Hz and no attack, side by side in one run (same machine, same load):
 
 - certified, the robust conformal set decided sequentially (the shipped default, DESIGN 3.6;
-  its calibration, 150 frames per label, runs before the timed drive, or comes from the cache,
-  and is not in the real-time factor);
+  its calibration comes with the model and is not in the real-time factor);
+- the same as it ran before 2026-12-06, the baseline of the default's speed-ups: every set
+  sampled until decided or n (no futility stop) and no noise drawn ahead (DESIGN 3.6, 3.8);
 - certified, sequential decisions with the safe-set interval (the paper's): at most n samples
   per frame, the range decided as soon as it is known;
 - the same in the torch backend (the model in torch instead of ONNX Runtime);
@@ -20,10 +21,15 @@ Precision and backend are what ``auto`` picks here unless ``DRAKE_CERT_PRECISION
 otherwise (both printed). For each: the real-time factor, the wall time, the time inside
 perception (perf_counter around the perception block's work) and samples per frame.
 
+``--repeat K`` drives every configuration K times, interleaved (one of each, then again), and
+reports each one's median wall and perception time: a shared machine's speed drifts over
+minutes, and the ratio "default / perception off" is then read from drives made side by side.
+
 ``--profile K`` also drives the conformal default once more under cProfile and prints its K
 most expensive functions (cumulative time per frame), the profile of a frame.
 
-Usage: python benchmarks/bench_driving.py [--seconds 10] [--n 1000] [--threads 1] [--profile 25]
+Usage: python benchmarks/bench_driving.py [--seconds 10] [--n 1000] [--threads 1] [--repeat 1]
+       [--profile 25]
 """
 
 import argparse
@@ -34,6 +40,7 @@ import time
 import numpy as np
 
 from drake_cert.certification.backends import resolve_backend
+from drake_cert.certification.conformal import LabelSetStopping
 from drake_cert.certification.sampler import resolve_precision
 from drake_cert.config import load_conditions, load_settings, load_vehicle
 from drake_cert.synthesis.table import synthesize_table
@@ -42,9 +49,14 @@ from drake_cert.systems.scenario import load_scenario
 from drake_cert.threads import torch_threads
 
 
-def timed_drive(scenario, setup, seconds):
+def timed_drive(scenario, setup, seconds, before=False):
+    """One drive; ``before``: as the conformal default ran until 2026-12-05 (every set sampled
+    until decided or n, no futility stop, and no noise drawn ahead), the baseline."""
     built = build_certified_driving_diagram(scenario, **setup)
     perception = built.systems["perception"]
+    if before:  # measurement only: the same Diagram with the two speed-ups turned off
+        perception.label_set_stopping = LabelSetStopping(futility_z=None)
+        perception._ahead_batches = ()
     spent = {"perceive_s": 0.0, "frames": 0}
     original = perception.perceive
 
@@ -70,6 +82,8 @@ def main() -> None:
     parser.add_argument("--seconds", type=float, default=10.0)
     parser.add_argument("--n", type=int, default=1000)
     parser.add_argument("--threads", type=int, default=1)
+    parser.add_argument("--repeat", type=int, default=1,
+                        help="drive each configuration K times, interleaved; report medians")
     parser.add_argument("--profile", type=int, default=0,
                         help="print the conformal drive's K most expensive functions")
     args = parser.parse_args()
@@ -86,9 +100,10 @@ def main() -> None:
                                  camera=dataclasses.replace(shipped.camera, rate_hz=10.0))
         return with_overrides(sc, pipeline=pipeline, attack="none")
 
+    conformal = variant("certified", decision="sequential", interval="conformal")
     configs = [
-        (f"conformal (default), n <= {args.n}", variant("certified", decision="sequential",
-                                                       interval="conformal")),
+        (f"conformal (default), n <= {args.n}", conformal),
+        ("conformal, before 2026-12-06", conformal),
         (f"safe-set, sequential, n <= {args.n}", variant("certified", decision="sequential",
                                                         interval="safe_set")),
         ("safe-set, sequential, torch", variant("certified", decision="sequential",
@@ -97,17 +112,22 @@ def main() -> None:
                                                           interval="safe_set", n0=100)),
         ("perception off (base f)", variant("base")),
     ]
-    rows = []
+    if args.repeat < 1:
+        parser.error(f"--repeat {args.repeat}: must be at least 1")
+    drives = {name: [] for name, _ in configs}
     with torch_threads(args.threads):
-        for name, scenario in configs:
-            summary, spent = timed_drive(scenario, setup, args.seconds)
-            rows.append((name, summary, spent))
+        for _ in range(args.repeat):
+            for name, scenario in configs:
+                drives[name].append(timed_drive(scenario, setup, args.seconds,
+                                                before=name.endswith("before 2026-12-06")))
+    rows = [(name, *median_drive(drives[name])) for name, _ in configs]
     print(f"dry_to_snow, camera 10 Hz, no attack, {args.seconds:g} s simulated, {precision} "
-          f"(backend auto: {backend}), {args.threads} thread(s), time.perf_counter")
+          f"(backend auto: {backend}), {args.threads} thread(s), time.perf_counter, median of "
+          f"{args.repeat} interleaved drive(s) each")
     print(f"{'configuration':<36}{'sim s / wall s':>15}{'wall s':>8}{'perception s':>14}"
           f"{'ms / frame':>11}{'samples / frame':>17}{'abstained':>10}{'envelope':>10}")
     out = {"precision": precision, "backend_auto": backend, "seconds": args.seconds,
-           "n": args.n, "threads": args.threads}
+           "n": args.n, "threads": args.threads, "repeat": args.repeat}
     for name, s, spent in rows:
         per_frame = 1e3 * spent["perceive_s"] / max(spent["frames"], 1)
         print(f"{name:<36}{s['real_time_factor']:>15.3f}{s['wall_s']:>8.1f}"
@@ -118,10 +138,23 @@ def main() -> None:
                      "samples_per_frame": spent["samples_per_frame"],
                      "abstention_fraction": s["abstention_fraction"],
                      "envelope_fraction": s["envelope_fraction"]}
+    default, off = rows[0][1]["wall_s"], rows[-1][1]["wall_s"]
+    print(f"wall time, conformal default / perception off: {default / off:.2f}x (before "
+          f"2026-12-06: {rows[1][1]['wall_s'] / off:.2f}x)")
+    out["default_over_perception_off"] = default / off
     print(json.dumps(out))
     if args.profile:
         with torch_threads(args.threads):
             print_profile(configs[0][1], setup, args.seconds, args.profile)
+
+
+def median_drive(drives):
+    """The summary and perception time of the drive with the median wall time (the upper
+    median of an even count), its perception time the median of all."""
+    ranked = sorted(drives, key=lambda d: d[0]["wall_s"])
+    summary, spent = ranked[len(ranked) // 2]
+    spent = dict(spent, perceive_s=float(np.median([d[1]["perceive_s"] for d in drives])))
+    return summary, spent
 
 
 def print_profile(scenario, setup, seconds, top):

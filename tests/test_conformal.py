@@ -15,14 +15,18 @@ import numpy as np
 import pytest
 import torch
 from scipy.stats import binom
+from scipy.stats import norm
 
 from drake_cert.certification.classifier import SmoothedClassifier
 from drake_cert.certification.conformal import (
     RobustConformalCalibration,
     calibrate_robust_conformal,
     conformal_interval,
+    LabelSetStopping,
     conformal_looks,
+    expected_to_stay,
     labels_that_stay,
+    look_batches,
     lower_conformal_quantile,
     min_frames_per_label,
     sequential_label_set,
@@ -186,8 +190,8 @@ def test_the_sequential_set_keeps_the_coverage_and_stops_early_where_the_range_i
             lo, hi = conformal_interval(d, calibration, table, PRESET, eps).interval
             misses += not lo <= stiffness[i] <= hi
             samples.append(d.samples)
-            assert d.looks == conformal_looks(1000) and d.reason in ("narrowest", "settled",
-                                                                      "fixed", "n_max")
+            assert d.looks == conformal_looks(1000) and d.reason in (
+                "narrowest", "settled", "futile", "fixed", "n_max")
             fixed = smooth.sample_counts(seen[i], 1000, 1000, None)
             lo, hi = conformal_interval(fixed, calibration, table, PRESET, eps).interval
             fixed_misses += not lo <= stiffness[i] <= hi
@@ -242,3 +246,71 @@ def test_a_label_needs_one_over_alpha_c_minus_one_frames_for_a_threshold(alpha_c
     assert min_frames_per_label(alpha_c) == frames
     assert lower_conformal_quantile(np.full(frames, 0.5), alpha_c) == 0.5
     assert lower_conformal_quantile(np.full(frames - 1, 0.5), alpha_c) == 0.0
+
+
+class NoiseCoordinate(torch.nn.Module):
+    """Label 1 where the first pixel of the noisy frame is above ``cut``, else label 0: label
+    1's share is ``1 - Phi((cut - x_0) / sigma)``, set by the frame's first pixel."""
+
+    def __init__(self, cut: float):
+        super().__init__()
+        self.cut = cut
+
+    def forward(self, x):
+        label = (x.flatten(1)[:, 0] > self.cut).long()
+        return torch.nn.functional.one_hot(label, 2).to(x.dtype)
+
+
+def test_a_set_whose_end_label_clears_its_threshold_by_a_margin_stops_for_futility():
+    # Label 1 holds 35% of the votes against a threshold of 0.30: too close for its lower bound
+    # to settle it in a few looks, too far for its upper bound to fall below 0.30 by n_max.
+    # Sampling on to n_max gives the same set; the futility rule stops at the first looks.
+    sigma = 0.25
+    smooth = SmoothedClassifier(NoiseCoordinate(cut=0.5), 2, sigma)
+    x0 = 0.5 + sigma * float(norm.ppf(0.35))  # P(label 1) = 0.35
+    frame = torch.full((1, 4, 4), x0)
+    calibration = RobustConformalCalibration({0: 0.30, 1: 0.30}, {0: 100, 1: 100}, 2, sigma,
+                                             n=1000)
+    quick, slow = [], []
+    for seed in range(8):
+        quick.append(sequential_label_set(smooth, frame, calibration, 0.0, 1000, 1000,
+                                          seed=seed))
+        slow.append(sequential_label_set(smooth, frame, calibration, 0.0, 1000, 1000, seed=seed,
+                                         stopping=LabelSetStopping(futility_z=None)))
+        assert quick[-1].label_set == slow[-1].label_set == (0, 1)
+        assert quick[-1].samples <= slow[-1].samples
+    assert sum(d.reason == "futile" for d in quick) >= 6
+    assert np.mean([d.samples for d in quick]) <= 128 <= 400 <= np.mean([d.samples for d in slow])
+
+
+def test_a_label_below_its_threshold_is_not_forecast_to_stay():
+    # The forecast lowers the share by z standard errors before projecting it to n_max: a
+    # label whose share is under its threshold is never expected to stay, one well above it is.
+    thresholds = np.array([0.3, 0.3])
+    stays = expected_to_stay(np.array([45, 19]), 64, 1000, 0.0002, thresholds, 1.0)
+    assert stays.tolist() == [True, False]
+    with pytest.raises(CertificationError, match="futility_z"):
+        sequential_label_set(SmoothedClassifier(NoiseCoordinate(0.5), 2, 0.25),
+                             torch.full((1, 4, 4), 0.5),
+                             RobustConformalCalibration({0: 0.3, 1: 0.3}, {0: 1, 1: 1}, 2,
+                                                        0.25, n=1000),
+                             0.0, 1000, 1000, seed=0,
+                             stopping=LabelSetStopping(futility_z=float("nan")))
+
+
+def test_noise_drawn_ahead_gives_the_set_drawn_in_place_sample_for_sample(setup):
+    # Drawing a tick's first batches of noise on a worker thread only moves the time: the
+    # counts, samples and set are those of the noise drawn in the sampler's own loop.
+    smooth, calibration = setup
+    images, _, _ = make_frames(4, seed=7)
+    batches = look_batches(1000, 100, 256)
+    assert batches == (64, 64, 100, 28)
+    for i in range(len(images)):
+        plain = sequential_label_set(smooth, images[i], calibration, 0.25, 1000, 100, seed=i)
+        smooth.draw_ahead(i, images[i].shape, batches)
+        ahead = sequential_label_set(smooth, images[i], calibration, 0.25, 1000, 100, seed=i)
+        assert (ahead.counts.tolist(), ahead.samples, ahead.label_set) == \
+            (plain.counts.tolist(), plain.samples, plain.label_set)
+    smooth.draw_ahead(99, images[0].shape, (32,))  # out of step with the looks: a bug, raised
+    with pytest.raises(RuntimeError, match="drawn ahead"):
+        sequential_label_set(smooth, images[0], calibration, 0.25, 1000, 100, seed=99)

@@ -29,6 +29,7 @@ from drake_cert.systems.driving import (
 )
 from drake_cert.systems.route import SegmentSpec
 from drake_cert.systems.scenario import SHIPPED_SCENARIOS, load_scenario
+from drake_cert.threads import available_cores
 
 VOLATILE = ("wall_s", "real_time_factor")
 
@@ -139,6 +140,25 @@ def test_the_same_seed_gives_the_same_summary(setup):
     assert first == second
     other = drive_scenario(with_overrides(scenario, seed=scenario.seed + 1), **setup).summary
     assert other["seed"] != first["seed"]
+
+
+def test_noise_drawn_ahead_between_frames_leaves_every_number_of_the_drive(setup):
+    # The next tick's first noise is drawn on a worker thread while the simulation runs
+    # (DESIGN 3.8): the drive with it is the drive without it, sample for sample.
+    scenario = short(with_overrides(snow_curve(), pipeline="certified", attack="sa"), 1.5)
+    results = []
+    for ahead in (True, False):
+        built = build_certified_driving_diagram(scenario, **setup)
+        perception = built.systems["perception"]
+        assert bool(perception._ahead_batches) == (available_cores() >= 2)
+        if not ahead:
+            perception._ahead_batches = ()
+        results.append(drive(built))
+    with_ahead, without = (r.summary for r in results)
+    for key in VOLATILE:
+        with_ahead.pop(key), without.pop(key)
+    assert with_ahead == without
+    assert list(results[0].ticks.samples) == list(results[1].ticks.samples)
 
 
 def test_every_drive_shares_one_conformal_calibration_whatever_its_seed(setup):

@@ -278,9 +278,10 @@ class ConformalDecision:
     ``counts``: the votes drawn; ``samples``: their number; ``looks``: the looks planned (each
     label's upper bound is taken at ``beta_test / len(looks)`` at every look); ``reason``:
     "narrowest" (one label), "settled" (both ends of the label range are in the set at the
-    settling level: more samples would not narrow it), "fixed" (the range is every label and
-    neither end can leave it whatever the votes still to come: 0 samples where no count could
-    exclude them), "n_max" (the last look).
+    settling level: more samples would not narrow it), "futile" (at the present vote shares
+    both ends would still be in the set at n_max: more samples are not expected to narrow
+    it), "fixed" (the range is every label and neither end can leave it whatever the votes
+    still to come: 0 samples where no count could exclude them), "n_max" (the last look).
     """
 
     label_set: tuple[int, ...]
@@ -304,6 +305,22 @@ def conformal_looks(n_max: int, first_look: int = 64) -> tuple[int, ...]:
     return tuple(looks)
 
 
+def look_batches(n_max: int, batch_size: int, samples: int,
+                 first_look: int = 64) -> tuple[int, ...]:
+    """The batches (their sizes, in order) in which :func:`sequential_label_set` draws its
+    first ``samples`` samples (whole looks: those of the looks up to ``samples``), e.g. to
+    draw their noise ahead (:meth:`~drake_cert.certification.sampler.SmoothedModel.draw_ahead`)."""
+    check_count(batch_size, "batch_size")
+    batches, drawn = [], 0
+    for look in conformal_looks(n_max, first_look):
+        if look > samples:
+            break
+        step, drawn = look - drawn, look
+        batches += [batch_size] * (step // batch_size) + ([step % batch_size] if step % batch_size
+                                                           else [])
+    return tuple(batches)
+
+
 @dataclasses.dataclass(frozen=True)
 class LabelSetStopping:
     """When :func:`sequential_label_set` looks and stops (a stopping rule: no guarantee rests
@@ -311,6 +328,20 @@ class LabelSetStopping:
 
     first_look: int = 64  # samples at the first look, doubling up to n_max
     settle_level: float = 0.01  # level of the lower bounds that settle the range's ends
+    # Futility: stop once both end labels, at their vote shares lowered by this many standard
+    # errors, would still be in the set at n_max (None: never stop for futility).
+    futility_z: float | None = 1.0
+
+
+def expected_to_stay(counts: np.ndarray, drawn: int, n_max: int, level: float,
+                     thresholds: np.ndarray, z: float) -> np.ndarray:
+    """Which labels would still be in the set at ``n_max`` samples if their vote shares stayed
+    at the present ones lowered by ``z`` standard errors (a forecast for the stopping rule,
+    not a bound: :func:`labels_that_stay` is the exact "whatever the votes" version)."""
+    share = np.asarray(counts, dtype=float) / drawn
+    pessimistic = np.clip(share - z * np.sqrt(share * (1.0 - share) / drawn), 0.0, 1.0)
+    return clopper_pearson_one_sided(np.floor(pessimistic * n_max).astype(np.int64), n_max,
+                                     level)[1] >= thresholds
 
 
 def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
@@ -327,15 +358,21 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
     the module's argument therefore holds at whichever look it stops, and the coverage stays
     ``1 - alpha_total``. It stops at the first look where the set's range is one label, or
     where both end labels of the range have a lower bound (at ``settle_level``; a stopping
-    rule only, no guarantee rests on it) above their threshold, or where the range is every
-    label and neither end can leave it by ``n_max`` (:func:`labels_that_stay`; before the first
-    sample where no count could exclude them: the envelope, free), or at ``n_max``.
-    ``stopping``: ``first_look`` and ``settle_level`` (:class:`LabelSetStopping`).
+    rule only, no guarantee rests on it) above their threshold, or where both end labels are
+    expected to stay in the set by ``n_max`` at their present shares (:func:`expected_to_stay`,
+    also a stopping rule only), or where the range is every label and neither end can leave it
+    by ``n_max`` (:func:`labels_that_stay`; before the first sample where no count could
+    exclude them: the envelope, free), or at ``n_max``.
+    ``stopping``: ``first_look``, ``settle_level`` and ``futility_z``
+    (:class:`LabelSetStopping`).
     """
     stopping = stopping or LabelSetStopping()
     first_look, settle_level = stopping.first_look, stopping.settle_level
     check_count(batch_size, "batch_size")
     check_alpha(settle_level, "settle_level")
+    z = stopping.futility_z
+    if z is not None and not (isinstance(z, (int, float)) and math.isfinite(z) and z >= 0):
+        raise CertificationError(f"futility_z = {z!r} must be a finite number >= 0 or None")
     if not (math.isfinite(eps) and eps >= 0):
         raise CertificationError(f"eps = {eps!r} must be a finite number >= 0")
     if classifier.num_classes != calibration.num_classes:
@@ -346,7 +383,7 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
     k = calibration.num_classes
     thresholds = np.array([calibration.threshold(lab, eps) for lab in range(k)])
     counts = np.zeros(k, dtype=np.int64)
-    gen = make_generator(seed, classifier.device)
+    gen = classifier.stream(seed)  # with any noise drawn ahead for it
     members, reason = np.zeros(k, dtype=bool), "n_max"
     if labels_that_stay(counts, n_max, level, thresholds)[[0, k - 1]].all():
         members, reason, looks_left = np.ones(k, dtype=bool), "fixed", ()
@@ -371,6 +408,10 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
         low = clopper_pearson_one_sided(counts[[lo, hi]], look, settle_level)[0]
         if low[0] >= thresholds[lo] and low[1] >= thresholds[hi]:
             reason = "settled"
+            break
+        if stopping.futility_z is not None and look < n_max and expected_to_stay(
+                counts, look, n_max, level, thresholds, stopping.futility_z)[[lo, hi]].all():
+            reason = "futile"
             break
     return ConformalDecision(tuple(int(i) for i in np.flatnonzero(members)), counts,
                              int(counts.sum()), looks, float(calibration.beta_test), reason)

@@ -4,6 +4,8 @@ path of both smoothed models), the frame and device checks, and seeded generator
 
 from __future__ import annotations
 
+import collections
+import concurrent.futures
 import copy
 import ctypes
 import ctypes.util
@@ -126,6 +128,8 @@ class NoisySampler:
                 warnings.warn(f"torch.compile unavailable ({e}); running the model eagerly",
                               RuntimeWarning, stacklevel=3)
         self._buffer: torch.Tensor | None = None
+        self._ahead: _NoiseAhead | None = None
+        self._worker: concurrent.futures.ThreadPoolExecutor | None = None
 
     def _forward(self, batch: torch.Tensor) -> torch.Tensor:
         if not self._needs_first_call:
@@ -174,8 +178,10 @@ class NoisySampler:
             # Short batches: an eager model runs them unpadded; a compiled one is padded (one
             # shape, compiled once) except for selection samples (see above).
             short = m < batch_size and (not self.compiled or (selection and 2 * m <= batch_size))
-            batch = buf[:m] if short else buf
-            batch.normal_(0.0, self.sigma, generator=generator)
+            batch = self._queued_noise(generator, m, tuple(x.shape))
+            if batch is None:
+                batch = buf[:m] if short else buf
+                batch.normal_(0.0, self.sigma, generator=generator)
             batch.add_(x)
             try:
                 out = self.base(batch) if short else self._forward(batch)
@@ -185,6 +191,58 @@ class NoisySampler:
             yield out[:m]
             remaining -= m
 
+    def draw_ahead(self, seed: int, frame_shape: Sequence[int], batches: Sequence[int]) -> None:
+        """Start drawing, on a worker thread, the noise of the first ``batches`` (their sizes,
+        in order) of the stream ``seed`` for frames of ``frame_shape``: the next
+        :meth:`stream` of that seed hands them to :meth:`outputs`, which would otherwise draw
+        them itself. No number changes (the blocks are the ones ``outputs`` would draw, in the
+        same order from the same generator); only the time moves, e.g. onto a core the
+        simulation leaves idle between two camera frames. Replaces any noise drawn ahead
+        before. A compiled model pads its batches, so it draws its own noise (nothing done).
+        """
+        if self.compiled or seed is None:
+            return
+        if self._worker is None:
+            self._worker = concurrent.futures.ThreadPoolExecutor(
+                max_workers=1, thread_name_prefix="drake-cert-noise")
+        shape, sigma = tuple(int(d) for d in frame_shape), self.sigma
+        sizes = [int(m) for m in batches]
+        generator = make_generator(int(seed), self.device)
+
+        def draw() -> collections.deque:
+            return collections.deque(
+                torch.empty((m, *shape), device=self.device).normal_(0.0, sigma,
+                                                                      generator=generator)
+                for m in sizes)
+
+        self._ahead = _NoiseAhead(int(seed), generator, self._worker.submit(draw))
+
+    def stream(self, seed: int | None) -> torch.Generator | None:
+        """The generator of the noise stream ``seed`` (:func:`make_generator`): the one
+        :meth:`draw_ahead` started for this seed, its drawn blocks queued for
+        :meth:`outputs` (waiting for the worker if it is still drawing), else a new one."""
+        ahead, self._ahead = self._ahead, None
+        if ahead is None or seed is None or int(seed) != ahead.seed:
+            return make_generator(seed, self.device)
+        ahead.queue = ahead.drawing.result()
+        self._ahead = ahead
+        return ahead.generator
+
+    def _queued_noise(self, generator, m: int, frame_shape: tuple) -> torch.Tensor | None:
+        """The next block drawn ahead for ``generator`` (None when there is none: the batch
+        draws its own noise). It must be the ``m`` noisy copies of a ``frame_shape`` frame this
+        batch would draw: any other block would put the stream out of order, a bug raised as
+        such."""
+        ahead = self._ahead
+        if ahead is None or generator is None or generator is not ahead.generator \
+                or not ahead.queue:
+            return None
+        block = ahead.queue.popleft()
+        if tuple(block.shape) != (m, *frame_shape):
+            raise RuntimeError(f"noise drawn ahead as a block of shape {list(block.shape)}, "
+                               f"but the batch draws {[m, *frame_shape]}")
+        return block
+
     def warmup(self, frame_shape: Sequence[int], batch_size: int) -> float:
         """Run one batch of the given frame shape (compiling if asked); return its seconds."""
         start = time.perf_counter()
@@ -193,6 +251,16 @@ class NoisySampler:
             for _ in self.outputs(x, 1, batch_size, None):
                 pass
         return time.perf_counter() - start
+
+
+@dataclasses.dataclass
+class _NoiseAhead:
+    """Noise of one stream being drawn ahead (:meth:`NoisySampler.draw_ahead`)."""
+
+    seed: int
+    generator: torch.Generator
+    drawing: concurrent.futures.Future  # the worker's deque of blocks
+    queue: collections.deque | None = None  # the blocks, once handed over by ``stream``
 
 
 @dataclasses.dataclass(frozen=True)
@@ -328,3 +396,13 @@ class SmoothedModel:
     def warmup(self, frame_shape: Sequence[int], batch_size: int) -> float:
         """Evaluate one batch (compiles the model when asked); returns the seconds taken."""
         return self._sampler.warmup(frame_shape, batch_size)
+
+    def draw_ahead(self, seed: int, frame_shape: Sequence[int], batches: Sequence[int]) -> None:
+        """Draw the first ``batches`` of the noise stream ``seed`` on a worker thread
+        (:meth:`NoisySampler.draw_ahead`: the same numbers, earlier)."""
+        self._sampler.draw_ahead(seed, frame_shape, batches)
+
+    def stream(self, seed: int | None) -> torch.Generator | None:
+        """The generator of the noise stream ``seed``, with any noise drawn ahead for it
+        (:meth:`NoisySampler.stream`)."""
+        return self._sampler.stream(seed)
