@@ -53,6 +53,23 @@ def test_resnet_maps_frames_to_features_and_logits():
     assert model(torch.rand(2, 3, 32, 32)).shape == (2, 4)  # global pooling: any size
 
 
+def test_a_pooled_network_is_the_same_network_on_the_frame_averaged_over_pixel_blocks(tmp_path):
+    # pool 2 is part of the model f: its answer on a 64 x 64 frame is the unpooled network's
+    # on the 32 x 32 frame of 2 x 2 block means, and the file keeps it (the noise of smoothing
+    # is still added to the full frame, where the certificate's radius is measured).
+    torch.manual_seed(0)
+    pooled = SmallResNet(3, width=8, pool=2).eval()
+    plain = SmallResNet(3, width=8).eval()
+    plain.load_state_dict(pooled.state_dict())
+    x = torch.rand(4, 3, 64, 64)
+    assert torch.allclose(pooled(x), plain(torch.nn.functional.avg_pool2d(x, 2)), atol=1e-6)
+    path = save_model(pooled, model_path("carla-like", "classify", 1, tmp_path),
+                      meta={"label_names": ["a", "b", "c"]})
+    loaded = load_model("carla-like", "classify", 1, tmp_path)
+    assert loaded.pool == 2 and torch.equal(loaded(x), pooled(x))
+    assert path.exists()
+
+
 def test_tiny_training_learns_above_chance(tiny):
     model, metrics, _, test = tiny
     assert not model.training

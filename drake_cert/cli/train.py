@@ -29,6 +29,7 @@ ALL_SIGMAS = (0.0, 0.25, 0.5, 1.0)
 FRAME_PASSES = 30_000  # default epochs: enough to see ~30k frames, at least MIN_EPOCHS
 MIN_EPOCHS = 6
 WIDTH_RANGE = (2, 256)  # --width: channels of a classifier's first stage
+POOLS = (1, 2, 4)  # --pool: pixel blocks averaged before a classifier's network
 
 
 def configure(parser) -> None:
@@ -72,6 +73,10 @@ def configure(parser) -> None:
     parser.add_argument("--width", type=int, default=16,
                         help="classifier: channels of the network's first stage, then 2x and "
                              "4x (default 16; the run-time cost grows about as its square)")
+    parser.add_argument("--pool", type=int, default=1, choices=POOLS,
+                        help="classifier: average pool x pool pixel blocks before the network "
+                             "(the noise is still added to the full frame; each convolution "
+                             "costs 1/pool^2 as much; default 1: none)")
     parser.add_argument("--consistency-lambda", type=float, default=10.0,
                         help="consistency: weight lambda of the KL term (default 10)")
     parser.add_argument("--consistency-eta", type=float, default=0.5,
@@ -161,7 +166,7 @@ def train_config(args):
     """The classifier's :class:`TrainConfig` of the command line (method and its parameters)."""
     from drake_cert.perception.training import TrainConfig, consistency_config, tail_config
 
-    base = TrainConfig(width=int(getattr(args, "width", 16)))
+    base = TrainConfig(width=int(getattr(args, "width", 16)), pool=int(getattr(args, "pool", 1)))
     if getattr(args, "method", "gaussian") == "consistency":
         return consistency_config(args.consistency_lambda, copies=args.copies,
                                   eta=args.consistency_eta, base=base)
@@ -191,6 +196,8 @@ def _single_command(preset: str, task: str, sigma: float, args) -> list[str]:
                 "--tail-weight", f"{args.tail_weight:g}"]
     if task == "classify" and int(getattr(args, "width", 16)) != 16:
         cmd += ["--width", str(int(args.width))]
+    if task == "classify" and int(getattr(args, "pool", 1)) != 1:
+        cmd += ["--pool", str(int(args.pool))]
     if args.seed != 0:
         cmd += ["--seed", str(args.seed)]
     if args.frames_per_class is not None:

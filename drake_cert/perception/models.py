@@ -58,12 +58,16 @@ class BasicBlock(nn.Module):
 class ConvFeatures(nn.Module):
     """Stride-2 stem, three residual stages (w, 2w, 4w channels), global average pooling.
 
-    Input: frames [B, 3, H, W] in [0, 1]; output: features [B, 4w].
+    Input: frames [B, 3, H, W] in [0, 1]; output: features [B, 4w]. ``pool`` > 1 first averages
+    pool x pool pixel blocks (part of the model: the smoothing noise is still added to the full
+    frame, and certificates are in its pixel space; DESIGN 3.2): each convolution then costs
+    1/pool^2 as much.
     """
 
-    def __init__(self, width: int = 16):
+    def __init__(self, width: int = 16, pool: int = 1):
         super().__init__()
-        self.width = width
+        self.width, self.pool = width, pool
+        self.average = nn.AvgPool2d(pool) if pool > 1 else nn.Identity()
         self.stem = nn.Sequential(nn.Conv2d(3, width, 3, stride=2, padding=1, bias=False),
                                   nn.BatchNorm2d(width), nn.ReLU())
         self.stages = nn.Sequential(BasicBlock(width, width),
@@ -72,18 +76,18 @@ class ConvFeatures(nn.Module):
         self.out_dim = 4 * width
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        x = (x - 0.5) * 4.0  # centre [0, 1] pixels; the scale is part of the model
+        x = (self.average(x) - 0.5) * 4.0  # centre [0, 1] pixels; the scale is the model's
         return self.stages(self.stem(x)).mean(dim=(2, 3))
 
 
 class SmallResNet(nn.Module):
     """ResNet-style classifier: ``features(x) -> [B, F]`` and ``forward(x) -> logits [B, K]``."""
 
-    def __init__(self, num_classes: int, width: int = 16):
+    def __init__(self, num_classes: int, width: int = 16, pool: int = 1):
         super().__init__()
         self.num_classes = num_classes
-        self.width = width
-        self.backbone = ConvFeatures(width)
+        self.width, self.pool = width, pool
+        self.backbone = ConvFeatures(width, pool)
         self.fc = nn.Linear(self.backbone.out_dim, num_classes)
 
     def features(self, x: torch.Tensor) -> torch.Tensor:
@@ -168,7 +172,7 @@ def save_model(model: nn.Module, path: str | Path, *, meta: dict) -> Path:
         regress = model.num_classes == 1 or meta.get("task") == "regress"
         kind = "regressor_net" if regress else "classifier"
         payload = {"kind": kind, "num_classes": model.num_classes,
-                   "width": model.width,
+                   "width": model.width, "pool": model.pool,
                    "state_dict": {k: v.detach().clone() for k, v in model.state_dict().items()}}
     elif isinstance(model, StiffnessRegressor):
         for key in ("classifier_file", "classifier_sha256"):
@@ -211,7 +215,8 @@ def load_model_file(path: str | Path) -> nn.Module:
     path = Path(path)
     payload = read_model_file(path)
     if payload["kind"] in ("classifier", "regressor_net"):
-        model = SmallResNet(payload["num_classes"], width=payload["width"])
+        model = SmallResNet(payload["num_classes"], width=payload["width"],
+                            pool=payload.get("pool", 1))  # files before pooling: 1
         model.load_state_dict(payload["state_dict"])
     elif payload["kind"] == "regressor":
         meta = payload["meta"]

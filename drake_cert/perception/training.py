@@ -47,6 +47,7 @@ class TrainConfig:
 
     epochs: int = 6
     width: int = 16  # channels of the first stage (then 2w, 4w)
+    pool: int = 1  # average pool x pool pixel blocks before the network (1: none)
     batch_size: int = 64
     learning_rate: float = 0.05  # peak
     warmup_fraction: float = 0.1
@@ -217,7 +218,7 @@ def train_classifier(train_set: FrameSet, *, sigma: float, epochs: int | None = 
     if epochs is not None:
         cfg = dataclasses.replace(cfg, epochs=int(epochs))
     torch.manual_seed(seed)
-    model = SmallResNet(len(train_set.label_names), width=cfg.width).to(device)
+    model = SmallResNet(len(train_set.label_names), width=cfg.width, pool=cfg.pool).to(device)
     optimizer = make_optimizer(model, cfg)
     n = len(train_set)
     steps_per_epoch = math.ceil(n / cfg.batch_size)
@@ -498,8 +499,8 @@ def train_regressor_end_to_end(train_set: FrameSet, *, sigma: float, epochs: int
                                       and 0.0 < quantiles[0] < quantiles[1] < 1.0):
         raise ValueError(f"quantiles = {quantiles!r} must be two levels 0 < lo < hi < 1")
     # the backbone is the init's (its width, e.g. a width-8 classifier), else cfg.width
-    width = init.width if init is not None else cfg.width
-    model = SmallResNet(1 if quantiles is None else 2, width=width)
+    width, pool = (init.width, init.pool) if init is not None else (cfg.width, cfg.pool)
+    model = SmallResNet(1 if quantiles is None else 2, width=width, pool=pool)
     if init is not None:
         model.backbone.load_state_dict(init.backbone.state_dict())
     model = model.to(device)
