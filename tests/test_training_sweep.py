@@ -81,6 +81,10 @@ def test_the_grid_names_each_method_and_width():
                      "tail_q0.25_b0.5_w8"]
     with pytest.raises(ConfigError, match="q must be in"):
         default_candidates((), ((0.0, 0.5),))
+    pooled = default_candidates((), ((0.25, 0.75),), (8,), (1, 2))
+    assert [(c.name, c.train_options[-4:]) for c in pooled[1:]] == [
+        ("tail_q0.25_b0.75_w8", ("--tail-weight", "0.75", "--width", "8")),
+        ("tail_q0.25_b0.75_w8_p2", ("--width", "8", "--pool", "2"))]
 
 
 def test_a_ranking_cell_outside_the_sweep_is_a_config_error():

@@ -70,6 +70,22 @@ def _widths(text: str) -> tuple[int, ...]:
     return values
 
 
+def _pools(text: str) -> tuple[int, ...]:
+    import argparse
+
+    from drake_cert.cli.train import POOLS
+
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or not all(v in POOLS for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give pixel-block sizes from "
+                                         f"{', '.join(map(str, POOLS))}, comma-separated "
+                                         "(train's --pool)")
+    return values
+
+
 def configure(parser) -> None:
     from drake_cert.cli.certify import _positive_int
 
@@ -84,6 +100,9 @@ def configure(parser) -> None:
     parser.add_argument("--widths", type=_widths, default=(16,),
                         help="network widths of the trained candidates, comma-separated "
                              "(default: 16)")
+    parser.add_argument("--pools", type=_pools, default=(1,),
+                        help="input pooling of the trained candidates (train's --pool), "
+                             "comma-separated (default: 1)")
     parser.add_argument("--rank", choices=("abstain", "tail"), default="abstain",
                         help="among eligible candidates pick the fewest abstentions in the "
                              "ranking cell, or the thinnest worst-label own-label tail (the "
@@ -144,7 +163,7 @@ def run(args) -> int:
     settings.certify_settings("sa", settings.ranking_eps).validate()
     root = Path(args.root or f"sweeps/{args.preset}_sigma{sigma_tag(sigma)}")
     out = Path(args.out) if args.out else root
-    candidates = sweep.default_candidates(args.lambdas, args.tails, args.widths)
+    candidates = sweep.default_candidates(args.lambdas, args.tails, args.widths, args.pools)
     paths = {}
     for cand in candidates:
         if cand.train_options is None:

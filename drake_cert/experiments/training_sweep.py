@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import itertools
 import math
 from collections.abc import Callable, Iterable
 from pathlib import Path
@@ -56,18 +57,22 @@ class Candidate:
 
 
 def default_candidates(lambdas: Iterable[float], tails: Iterable[tuple[float, float]] = (),
-                       widths: Iterable[int] = (16,), copies: int = 2,
-                       eta: float = 0.5) -> list[Candidate]:
+                       widths: Iterable[int] = (16,), pools: Iterable[int] = (1,),
+                       copies: int = 2, eta: float = 0.5) -> list[Candidate]:
     """The baseline (an existing file: by default the shipped model), then at each network
-    width: consistency regularization at each lambda (m = ``copies``, ``eta``) and the
-    tail-weighted loss at each ``(q, beta)`` (docs/design.md 3.2). Names carry the width when it
-    is not the default 16 (tail candidates always carry it)."""
+    width and input pooling: consistency regularization at each lambda (m = ``copies``,
+    ``eta``) and the tail-weighted loss at each ``(q, beta)`` (docs/design.md 3.2). Names carry
+    the width when it is not the default 16 (tail candidates always carry it) and the pooling
+    when it is not 1 (``_p2``)."""
     out = [Candidate("baseline")]
-    for width in widths:
+    for width, pool in itertools.product(widths, pools):
         if int(width) < 1:
             raise ConfigError(f"width {width} must be a whole number >= 1")
-        size = ("--width", str(int(width)))
-        suffix = "" if int(width) == 16 else f"_w{int(width)}"
+        if int(pool) < 1:
+            raise ConfigError(f"pool {pool} must be a whole number >= 1")
+        size = ("--width", str(int(width))) + (("--pool", str(int(pool))) if pool != 1 else ())
+        pooled = "" if int(pool) == 1 else f"_p{int(pool)}"
+        suffix = ("" if int(width) == 16 else f"_w{int(width)}") + pooled
         for lam in lambdas:
             if not (math.isfinite(lam) and lam >= 0):
                 raise ConfigError(f"lambda {lam} must be a finite number >= 0")
@@ -79,7 +84,7 @@ def default_candidates(lambdas: Iterable[float], tails: Iterable[tuple[float, fl
             if not (0 < q <= 1 and 0 <= beta <= 1):
                 raise ConfigError(f"tail (q {q:g}, beta {beta:g}): q must be in (0, 1] and "
                                   "beta in [0, 1]")
-            out.append(Candidate(f"tail_q{q:g}_b{beta:g}_w{int(width)}",
+            out.append(Candidate(f"tail_q{q:g}_b{beta:g}_w{int(width)}{pooled}",
                                  ("--method", "tail", "--tail-fraction", f"{q:g}",
                                   "--tail-weight", f"{beta:g}", *size)))
     return out
