@@ -14,15 +14,14 @@ import math
 import numpy as np
 import pytest
 import torch
-from scipy.stats import binom
-from scipy.stats import norm
+from scipy.stats import binom, norm
 
 from drake_cert.certification.classifier import SmoothedClassifier
 from drake_cert.certification.conformal import (
+    LabelSetStopping,
     RobustConformalCalibration,
     calibrate_robust_conformal,
     conformal_interval,
-    LabelSetStopping,
     conformal_looks,
     expected_to_stay,
     labels_that_stay,

@@ -80,8 +80,8 @@ def test_the_papers_other_metrics_never_stand_in_parentheses_beside_ours(text):
 
 
 def test_every_paper_figure_under_attack_stands_only_at_the_papers_budget(full_text):
-    """Issue 51: four of the paper's delta = 255 rows stood in eps = 0.25 sections without
-    naming their budget. The sections at eps = 0.25 hold only the paper's clean figures
+    """A figure the paper gives under attack is read at its own budget only (delta = 255, eps =
+    1), never beside ours at another. The sections at eps = 0.25 hold only the paper's clean figures
     (Tables II, VIII); every attacked figure, Table VII's h (no attack or budget stated)
     included, stands at eps = 1."""
     by_title = sections(full_text)

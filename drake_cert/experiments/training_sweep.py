@@ -21,8 +21,8 @@ by more than the baseline's own sampling error.
 from __future__ import annotations
 
 import dataclasses
-import json
 import itertools
+import json
 import math
 from collections.abc import Callable, Iterable
 from pathlib import Path
