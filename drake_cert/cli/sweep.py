@@ -220,6 +220,10 @@ def _trained(model) -> str:
     fit = model.meta.get("seconds", {}).get("fit")
     width = getattr(getattr(model, "backbone", model), "width", None)
     method += f", width {width}" if width is not None else ""
+    pool = getattr(getattr(model, "backbone", model), "pool", 1)
+    method += f", {pool} x {pool} pixel blocks averaged first" if pool != 1 else ""
+    frames = model.meta.get("train_frames_per_class")
+    method += f", {frames} training frames a label" if frames else ""
     return (f"{method}; {m.get('epochs', '?')} epochs on {m.get('device', 'cpu')}"
             + (f", {fit:.0f} s" if fit is not None else ""))
 
