@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from drake_cert import cli
+from drake_cert.cli.certify import format_summary
 from drake_cert.perception.models import (
     SmallResNet,
     StiffnessRegressor,
@@ -149,3 +150,14 @@ def test_certify_frames_dir_certifies_a_users_class_folders(models, tmp_path, ca
     assert {r["label"] for r in out["records"]} == {0, 1, 2}
     # stiffness.csv gave each frame its true stiffness: coverage is a number, not NaN
     assert 0.0 <= out["summary"]["interval_coverage"] <= 1.0
+
+
+@pytest.mark.parametrize("beta, shown", [(3900.0, "conformal beta 3,900 N/rad\n"),
+                                         (float("inf"), "conformal beta inf (too few")])
+def test_the_regressors_text_says_too_few_frames_only_where_beta_is_infinite(beta, shown):
+    s = dict(preset="rtk-like", task="regress", sigma=0.25, attack="none", eps=0.25, frames=9,
+             n=500, alpha=0.001, mae_n_per_rad=2000.0, beta_n_per_rad=beta,
+             interval_width_mean=25000.0, raw_width_mean=20000.0, interval_coverage=1.0)
+    text = format_summary(s)
+    assert shown in text
+    assert ("too few" in text) == (beta == float("inf"))

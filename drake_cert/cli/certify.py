@@ -221,9 +221,11 @@ def format_summary(s: dict) -> str:
         return (f"{head} (base model f, no certificate)\n"
                 f"mean abs error {s['mae_n_per_rad']:,.0f} N/rad "
                 f"(clean {s['clean_mae_n_per_rad']:,.0f})")
+    beta = s["beta_n_per_rad"]
+    beta_text = (f"{beta:,.0f} N/rad" if math.isfinite(beta)
+                 else "inf (too few calibration frames for alpha_c)")
     return (f"{head}, n={s['n']}, alpha={s['alpha']:g}\n"
-            f"median abs error {s['mae_n_per_rad']:,.0f} N/rad, conformal beta "
-            f"{s['beta_n_per_rad']:,.0f} N/rad (inf: too few calibration frames)\n"
+            f"median abs error {s['mae_n_per_rad']:,.0f} N/rad, conformal beta {beta_text}\n"
             f"run-time interval at eps={s['eps']:g}: mean width "
             f"{s['interval_width_mean']:,.0f} N/rad (raw {s['raw_width_mean']:,.0f}), "
             f"coverage {s['interval_coverage']:.3f}")
