@@ -56,7 +56,7 @@ def timed_drive(scenario, setup, seconds, before=False):
     perception = built.systems["perception"]
     if before:  # measurement only: the same Diagram with the two speed-ups turned off
         perception.label_set_stopping = LabelSetStopping(futility_z=None)
-        perception._ahead_batches = ()
+        perception.draw_ahead_samples = 0
     spent = {"perceive_s": 0.0, "frames": 0}
     original = perception.perceive
 

@@ -167,8 +167,8 @@ class SmoothingSetup:
     frame_shape: tuple[int, int, int]
     period_s: float  # camera period (s)
     smooth: object  # SmoothedClassifier / MedianSmoothedRegressor, or None in base mode
-    # batches of the next tick's noise drawn ahead after a conformal set (none: no draw-ahead)
-    ahead_batches: tuple[int, ...] = ()
+    # samples of the next tick's noise drawn ahead after a conformal set (0: none)
+    draw_ahead_samples: int = 0
 
 
 def _check_perception_modes(p: PerceptionSettings, rate_hz: float) -> None:
@@ -232,17 +232,16 @@ def smoothing_setup(model: torch.nn.Module, perception: PerceptionSettings | Non
         frame_shape=(3, int(camera.frame_size), int(camera.frame_size)),
         period_s=1.0 / float(camera.rate_hz))
     return SmoothingSetup(**s, smooth=_smoothed_model(model, p, s, runtime),
-                          ahead_batches=_ahead_batches(p, s))
+                          draw_ahead_samples=_draw_ahead_samples(p, s))
 
 
-def _ahead_batches(p: PerceptionSettings, s: dict) -> tuple[int, ...]:
-    """The batches of a tick's noise to draw ahead while the simulation runs: those of the
-    conformal set's looks up to :data:`DRAW_AHEAD_SAMPLES`, on a second core only (on one
-    core the work would only compete with the simulation), else none."""
-    if p.pipeline != "certified" or p.task != "classify" or s["decision"] != "sequential" \
-            or s["conformal"] is None or available_cores() < 2:
-        return ()
-    return look_batches(s["n"], s["batch_size"], DRAW_AHEAD_SAMPLES)
+def _draw_ahead_samples(p: PerceptionSettings, s: dict) -> int:
+    """How many of a tick's samples to draw the noise of ahead, while the simulation runs:
+    :data:`DRAW_AHEAD_SAMPLES` for a conformal set on a second core, else 0 (on one core the
+    work would only compete with the simulation)."""
+    conformal_set = p.pipeline == "certified" and p.task == "classify" \
+        and s["decision"] == "sequential" and s["conformal"] is not None
+    return DRAW_AHEAD_SAMPLES if conformal_set and available_cores() >= 2 else 0
 
 
 class PerceptionSmoothing(LeafSystem):
@@ -279,7 +278,10 @@ class PerceptionSmoothing(LeafSystem):
 
     ``label_names``, ``ranges``, ``alpha_spending`` and ``conformal`` come in one
     :class:`PerceptionInputs`; :func:`smoothing_setup` checks everything and builds the
-    smoothed model.
+    smoothed model. Two attributes may be changed before a drive, neither changing what is
+    certified: ``label_set_stopping`` (when a conformal set stops sampling,
+    :class:`~drake_cert.certification.conformal.LabelSetStopping`) and ``draw_ahead_samples``
+    (the next tick's samples whose noise is drawn while the simulation runs; 0: none).
     """
 
     def __init__(self, model: torch.nn.Module, perception: PerceptionSettings | None = None,
@@ -294,7 +296,7 @@ class PerceptionSmoothing(LeafSystem):
         self.label_names, self.frame_shape = s.label_names, s.frame_shape
         self.period_s = s.period_s
         self.offset_s = OFFSET_FRACTION * self.period_s
-        self._smooth, self._ahead_batches = s.smooth, s.ahead_batches
+        self._smooth, self.draw_ahead_samples = s.smooth, s.draw_ahead_samples  # 0: none
         self.label_set_stopping = LabelSetStopping()  # when a conformal set stops sampling
         initial = PerceptionResult.no_frame(s.mode, s.task)
         self._in = self.DeclareAbstractInputPort(
@@ -378,11 +380,14 @@ class PerceptionSmoothing(LeafSystem):
             return dataclasses.replace(base, frame_ok=False, error=str(e))
 
     def _draw_ahead(self, tick: int) -> None:
-        """Start drawing camera tick ``tick``'s first noise on a worker thread, while the
-        simulation runs on one core until that tick (the same numbers, earlier: DESIGN 3.8)."""
-        if self._ahead_batches:
+        """Start drawing the noise of camera tick ``tick``'s looks up to
+        ``draw_ahead_samples`` on a worker thread, while the simulation runs on one core until
+        that tick (the same numbers, earlier: DESIGN 3.8)."""
+        if self.draw_ahead_samples:
+            batches = look_batches(self.n, self.batch_size, self.draw_ahead_samples,
+                                   self.label_set_stopping.first_look)
             self._smooth.draw_ahead(child_seed(self.seed, Purpose.ESTIMATION, tick),
-                                    self.frame_shape, self._ahead_batches)
+                                    self.frame_shape, batches)
 
     def alpha_of(self, tick: int) -> float:
         """The failure probability of the decision on camera tick ``tick``."""

@@ -150,9 +150,9 @@ def test_noise_drawn_ahead_between_frames_leaves_every_number_of_the_drive(setup
     for ahead in (True, False):
         built = build_certified_driving_diagram(scenario, **setup)
         perception = built.systems["perception"]
-        assert bool(perception._ahead_batches) == (available_cores() >= 2)
+        assert bool(perception.draw_ahead_samples) == (available_cores() >= 2)
         if not ahead:
-            perception._ahead_batches = ()
+            perception.draw_ahead_samples = 0
         results.append(drive(built))
     with_ahead, without = (r.summary for r in results)
     for key in VOLATILE:
