@@ -43,7 +43,7 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from drake_cert.experiments.perception_eval import clopper_pearson_interval
-from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS
+from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS, PAPER_UNITS
 
 SECONDARY_EPS = (0.25,)  # the main tables' budget: secondary rows under each verdict
 G_PIPELINES = ("g", "g_conformal")  # the paper's interval first: its verdict
@@ -65,8 +65,8 @@ PAPER_BEST_SIGMA = {"carla-like": 0.25, "rtk-like": 0.25, "robotcar-like": 0.5}
 
 # Units of the paper's figures, named where they stand (the paper defines neither its
 # instability, which reaches 200.00 and is no share, nor its velocity's or MSE's unit).
-_INSTABILITY = "the paper's own unit, not a share"
-_VELOCITY = "unit not stated, ours m/s"
+_INSTABILITY = PAPER_UNITS["instability"]
+_VELOCITY = PAPER_UNITS["velocity_mps"]
 
 
 def share(hits: int, total: int) -> dict:

@@ -32,7 +32,7 @@ from collections import defaultdict
 
 import numpy as np
 
-from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS
+from drake_cert.experiments.reproduce_config import PAPER_BUDGET_EPS, PAPER_UNITS
 
 COLUMNS = ("table", "preset", "task", "pipeline", "sigma", "attack", "eps", "frames", "accuracy",
            "mse", "instability_pct", "velocity_mps", "certificate", "certified_pct",
@@ -99,12 +99,8 @@ PAPER_BUDGET = 255  # the paper's "delta = 255" (norm's pixel scale and image si
 PAPER_BUDGET_AS_EPS = PAPER_BUDGET_EPS
 # How a paper row names its budget: its delta, and how we read it.
 PAPER_DELTA = f"delta = {PAPER_BUDGET}, read as eps = {PAPER_BUDGET_AS_EPS:g}"
-# The units of the paper's figures, in paper_claims' words: it defines neither its
+# The units of the paper's figures (reproduce_config.PAPER_UNITS): it defines neither its
 # instability (0 to 200: no share) nor its velocity's or MSE's unit, nor tau's pixel scale.
-PAPER_UNITS = dict(accuracy="% of frames", instability="the paper's own unit, not a share",
-                   velocity_mps="unit not stated, ours m/s",
-                   mse="unit not stated, ours (kN/rad)^2",
-                   certificate_tau="an L2 radius, pixel scale not stated")
 
 # The paper's Table I (ground-truth cornering stiffness, kN/rad) and safe-set table, by label.
 PAPER_STIFFNESS_KN = {"sunny": (80, 120), "light_rain": (60, 80), "heavy_rain": (40, 60),
