@@ -49,7 +49,7 @@ def main() -> None:
     p = sc.perception
     model = with_precision(load_model(p.preset, p.task, p.sigma), p.precision)
     evaluated = driving._evaluated_model(model, sc, conditions, p.sigma)
-    cal = driving._conformal_calibration(evaluated, sc, conditions)
+    cal = driving.drive_conformal_calibration(evaluated, sc, conditions)
     spec = driving.conformal_votes_spec(sc, conditions)
     test = load_split(p.preset, "test", conditions=conditions,
                       frames_per_class=args.frames_per_label)

@@ -268,8 +268,8 @@ def conformal_votes(model, scenario: Scenario, conditions: ConditionsTable,
                              refresh=refresh)
 
 
-def _conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
-                           progress: Callable | None = None):
+def drive_conformal_calibration(model, scenario: Scenario, conditions: ConditionsTable,
+                                progress: Callable | None = None):
     """The robust conformal calibration of the certified classifier (docs/design.md 3.6):
     calibration-conditional (``perception.conformal_delta_cal``) and bounded in each of
     ``perception.conformal_bins_per_label`` stiffness bins of every label at
@@ -659,7 +659,8 @@ def _prepare_drive(scenario: Scenario, vehicle: VehicleParams, settings: Setting
     evaluated = _evaluated_model(model, scenario, conditions, sigma)
     beta = _regression_beta(evaluated, scenario, conditions) \
         if certified and p.task == "regress" else math.inf
-    conformal = _conformal_calibration(evaluated, scenario, conditions, calibration_progress) \
+    conformal = drive_conformal_calibration(evaluated, scenario, conditions,
+                                            calibration_progress) \
         if certified and p.task == "classify" and p.interval == "conformal" else None
     return _PreparedDrive(
         scenario=scenario, vehicle=vehicle, settings=settings, tires=tires, table=table,

@@ -89,6 +89,25 @@ def test_another_setting_calibrates_with_a_progress_bar_and_caches(tmp_path, mon
     assert np.array_equal(again.true_counts, votes.true_counts)
 
 
+@pytest.mark.parametrize("preset", list(PRESET_SCENARIO))
+def test_the_reproduction_calibrates_g_conformal_as_the_drive_does(preset, monkeypatch):
+    """At sigma 1 the reproduction's g_conformal reads the shipped votes (nothing is drawn)
+    and gets the drive's thresholds, bins and bound, with the drive's settings as defaults."""
+    from drake_cert.certification import conformal as rc
+    from drake_cert.experiments.calibrations import conformal_calibration
+    from drake_cert.experiments.reproduce_config import ReproduceConfig
+
+    sc, conditions = load_scenario(PRESET_SCENARIO[preset]), load_conditions()
+    drive = driving.drive_conformal_calibration(_evaluated(sc, conditions), sc, conditions)
+    monkeypatch.setattr(rc, "true_label_counts", lambda *a, **k: 1 / 0)  # drawing would fail
+    config = ReproduceConfig(presets=(preset,), precision=sc.perception.precision,
+                             backend=sc.perception.backend)
+    assert config.conformal_alpha_c == sc.perception.conformal_alpha_c
+    ours = conformal_calibration(config, preset, 1.0, conditions)
+    assert ours.thresholds == drive.thresholds and ours.alpha_c == drive.alpha_c <= 0.25
+    assert ours.delta_cal == drive.delta_cal and ours.bins == drive.bins
+
+
 def test_calibrate_prints_each_bins_threshold_and_bound_from_the_shipped_votes(capsys):
     from drake_cert.cli import main
 

@@ -55,7 +55,7 @@ def run(args) -> int:
     if args.ship:
         path = write_shipped(model_path(p.preset, p.task, p.sigma), votes)
         print(f"wrote {path}", file=sys.stderr)
-    cal = driving._conformal_calibration(evaluated, scenario, conditions)
+    cal = driving.drive_conformal_calibration(evaluated, scenario, conditions)
     if args.json:
         print(json.dumps(cal.to_json(), indent=1))
         return 0

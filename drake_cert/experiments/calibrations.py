@@ -1,9 +1,9 @@
 """The reproduction's calibrations, computed before its frames and spread over its executor:
 h's conformal beta per (preset, sigma) (DESIGN 3) and, for the pipeline g_conformal, g's robust
-conformal calibration per (preset, sigma). Each comes from its own seed stream
-(``regression_calibration`` or ``conformal_calibration`` (preset, sigma) of the root seed), so a
-pair's numbers are those it gets computed alone, in any run; the run's store keeps them as they
-arrive.
+conformal calibration per (preset, sigma). A beta comes from its own seed stream
+(``regression_calibration`` (preset, sigma) of the root seed) and g's calibration is the
+drive's, the model's own (docs/design.md 3.6), so a pair's numbers are those it gets computed
+alone, in any run; the run's store keeps them as they arrive.
 """
 
 from __future__ import annotations
@@ -123,23 +123,30 @@ def conformal_sigmas(config: ReproduceConfig) -> list[float]:
 
 
 def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, conditions=None):
-    """The robust conformal calibration of g at (preset, sigma): ``conformal_per_class``
-    held-out frames per label, ``conformal_n`` samples each, from the seed stream
-    ``conformal_calibration`` (preset, sigma) of the root seed."""
-    from drake_cert.certification.classifier import SmoothedClassifier
-    from drake_cert.certification.conformal import calibrate_robust_conformal
-    from drake_cert.certification.sampler import CalibrationSampling
-    from drake_cert.perception.datasets import load_split
+    """g's robust conformal calibration at (preset, sigma): the drive's
+    (:func:`drake_cert.systems.driving.drive_conformal_calibration`, docs/design.md 3.6) with
+    the run's settings: the model's true-label votes on ``conformal_per_class`` calibration
+    frames a label, ``conformal_n`` samples each (read from the file shipped beside the model
+    when its spec matches, else the calibration cache's, else drawn), thresholds bounded in
+    ``conformal_bins_per_label`` stiffness bins a label at ``conformal_alpha_c`` outside an
+    event of probability ``conformal_delta_cal``. The model is evaluated on the CPU as a drive
+    evaluates it (the run's backend and precision)."""
+    from drake_cert.certification.backends import evaluated_model
+    from drake_cert.systems import driving
+    from drake_cert.systems.scenario import PerceptionSettings, Scenario
 
-    cal = load_split(preset, "calibration", conditions=conditions or load_conditions(),
-                     frames_per_class=config.conformal_per_class)
-    classifier = SmoothedClassifier(
-        evaluated_run_model(config, run_model(config, preset, "classify", sigma)),
-        len(cal.label_names), sigma, device=config.device)
-    return calibrate_robust_conformal(
-        classifier, cal.images, cal.labels.tolist(), sampling=CalibrationSampling(
-            n=config.conformal_n, batch_size=min(config.batch_size, config.conformal_n),
-            seed=calibration_seed(config, Purpose.CONFORMAL_CALIBRATION, preset, sigma)))
+    conditions = conditions or load_conditions()
+    c = config
+    backend = c.backend if c.device == "cpu" else "torch"
+    scenario = Scenario(name="reproduce", perception=PerceptionSettings(
+        preset=preset, task="classify", sigma=float(sigma), precision=c.precision,
+        backend=backend, conformal_frames_per_class=c.conformal_per_class,
+        conformal_calibration_n=c.conformal_n, conformal_alpha_c=c.conformal_alpha_c,
+        conformal_bins_per_label=c.conformal_bins_per_label,
+        conformal_delta_cal=c.conformal_delta_cal))
+    model = evaluated_model(run_model(c, preset, "classify", sigma), backend=backend,
+                            precision=c.precision)
+    return driving.drive_conformal_calibration(model, scenario, conditions)
 
 
 class ConformalWorker:

@@ -2,15 +2,15 @@
 
 Seeds (the project's one scheme, :mod:`drake_cert.certification.seeds`): every stream is a named
 child of the root seed: a preset's frame choice ``frame_choice`` (preset), h's calibration
-``regression_calibration`` (preset, sigma), g's robust conformal calibration
-``conformal_calibration`` (preset, sigma), and each cell ``cell`` (:func:`cell_seed`: preset and
+``regression_calibration`` (preset, sigma), and each cell ``cell`` (:func:`cell_seed`: preset and
 what the cell is: pipeline, attack, sigma, budget). A cell's seed is the root of its Diagram
 blocks' streams (``attack``, ``selection``, ``estimation``, keyed by the frame's position), as
 a scenario's seed is in a drive. So no attack draws the noise of the certificate it attacks, a
 cell draws the same noise in any run that has it (whatever presets, pipelines or other cells
 the run holds), ``g`` and ``g_conformal`` share theirs (one attack and one certificate, read
 by two intervals), and a frame's rows can be recomputed alone (``reproduce.recompute_frame``)
-with the same numbers, whatever the executor.
+with the same numbers, whatever the executor. g's robust conformal calibration is the drive's,
+the model's own (its noise rooted at a constant, whatever the run's seed; docs/design.md 3.6).
 """
 
 from __future__ import annotations
@@ -23,6 +23,9 @@ import numpy as np
 
 from drake_cert.config import load_conditions
 from drake_cert.errors import ConfigError
+from drake_cert.systems.scenario import PerceptionSettings
+
+_DRIVE = PerceptionSettings()  # the drive's defaults, which g_conformal's calibration shares
 
 # The pipelines of a run. ``g`` reads the paper's safe-set interval off its certificate and
 # ``g_conformal`` the robust conformal interval (DESIGN 3) off the same certificate: the same
@@ -65,8 +68,17 @@ class ReproduceConfig:
     calibration_n: int = 1000  # samples per calibration frame
     alpha_c: float = 0.01
     alpha_m: float = 0.001
-    conformal_per_class: int = 150  # robust conformal calibration frames per label (>= 124)
-    conformal_n: int = 500  # samples per conformal calibration frame
+    # g_conformal's calibration is the drive's (docs/design.md 3.6), with the drive's defaults:
+    # the model's votes on conformal_per_class calibration frames a label, conformal_n
+    # samples each (shipped beside the sigma-1 models, so those are not drawn again),
+    # thresholds calibration-conditional in conformal_bins_per_label stiffness bins a label,
+    # each bin's miss rate within conformal_alpha_c outside an event of probability
+    # conformal_delta_cal
+    conformal_per_class: int = _DRIVE.conformal_frames_per_class
+    conformal_n: int = _DRIVE.conformal_calibration_n
+    conformal_alpha_c: float = _DRIVE.conformal_alpha_c
+    conformal_bins_per_label: int = _DRIVE.conformal_bins_per_label
+    conformal_delta_cal: float = _DRIVE.conformal_delta_cal
     precision: str = "auto"  # model arithmetic of attacks, certificates and calibration alike;
     # "auto" is resolved on construction (sampler.resolve_precision), so results and the run
     # identity always name the arithmetic that ran
@@ -113,14 +125,15 @@ class ReproduceConfig:
     def quick(seed: int = 0) -> ReproduceConfig:
         """A few frames per cell, small n, one budget: the CI-sized run (< 2 min on 2 cores).
 
-        Its robust conformal calibration (4 frames per label, 50 samples each) is far below
-        the 124 frames per label that alpha_c needs, so g_conformal's label set is every label:
-        the envelope. The quick run checks the plumbing of that pipeline, not its speed."""
+        Its robust conformal calibration (6 frames per label, 50 samples each, one stiffness
+        bin a label, miss target 0.5 at delta_cal 0.1: the fewest frames that give a
+        threshold) checks the plumbing of that pipeline, not its coverage."""
         return ReproduceConfig(sigmas=(0.25, 0.5, 1.0), eps=0.25, sweep_eps=(0.25,),
                                sweep_sigma=0.25, frames=2, n0=20, n=200, batch_size=200,
                                attack_steps=4, attack_noise_draws=2, calibration_per_class=6,
-                               calibration_n=100, conformal_per_class=4, conformal_n=50,
-                               seed=seed)
+                               calibration_n=100, conformal_per_class=6, conformal_n=50,
+                               conformal_alpha_c=0.5, conformal_bins_per_label=1,
+                               conformal_delta_cal=0.1, seed=seed)
 
     def validate(self) -> None:
         conditions = load_conditions()
@@ -140,12 +153,33 @@ class ReproduceConfig:
                 raise ConfigError(f"eps = {e!r} must be a finite number >= 0")
         if not 0 < self.alpha < 1:
             raise ConfigError(f"alpha = {self.alpha!r} must be in (0, 1)")
-        for name in ("conformal_per_class", "conformal_n"):
+        for name in ("conformal_per_class", "conformal_n", "conformal_bins_per_label"):
             if getattr(self, name) <= 0:
                 raise ConfigError(f"{name} = {getattr(self, name)} must be a positive integer")
+        for name in ("conformal_alpha_c", "conformal_delta_cal"):
+            if not 0 < getattr(self, name) < 1:
+                raise ConfigError(f"{name} = {getattr(self, name)!r} must be in (0, 1)")
+        if self.conformal:
+            self._check_conformal_frames()
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
         check_device(self.device)
+
+    def _check_conformal_frames(self) -> None:
+        """Refuse a g_conformal calibration whose bins are too short for any threshold (as a
+        drive's settings are refused), before any vote is drawn."""
+        from drake_cert.certification.pac_conformal import min_frames_per_bin
+
+        labels = max(len(load_conditions().preset(p).labels) for p in self.presets)
+        bins = self.conformal_bins_per_label
+        need = min_frames_per_bin(self.conformal_alpha_c,
+                                  self.conformal_delta_cal / (labels * bins))
+        if self.conformal_per_class < bins * need:
+            raise ConfigError(
+                f"conformal_per_class = {self.conformal_per_class} gives fewer than the {need} "
+                f"calibration frames a stiffness bin (of {bins}) that conformal_alpha_c = "
+                f"{self.conformal_alpha_c:g} at conformal_delta_cal = "
+                f"{self.conformal_delta_cal:g} needs; raise it to at least {bins * need}")
 
     @property
     def pipelines(self) -> tuple[str, ...]:
