@@ -38,6 +38,10 @@ def test_quick_run_writes_every_table_with_the_required_columns(quick_local):
     assert cpu["all"] == pytest.approx(cpu["frames"] + cpu["calibration_h"]
                                        + cpu["calibration_conformal"], abs=0.11)
     assert cpu["invocations_without"] == 0 and meta["runs"][-1]["cpu_s"]["frames"] > 0
+    # ... and the machine: the CPU's model name and the cores the run had
+    assert meta["machine"]["cpu"] and meta["machine"]["cores"] >= 1
+    assert meta["machine"] == meta["runs"][-1]["machine"]
+    assert meta["config"]["conformal_alpha_c"] == 0.5  # the quick run's; the drive's by default
     # one invocation: the store's ledger holds the same seconds, and a part count per stage
     ledger = meta["store_cpu_s"]
     assert ledger["frames_parts"] == 6 and ledger["all"] == pytest.approx(cpu["all"], abs=0.2)

@@ -130,6 +130,15 @@ def build_config(args):
     return config
 
 
+def _machine(precision: str) -> dict:
+    """The CPU this invocation ran on (its model name and vector flags) and its cores."""
+    from drake_cert.experiments.run_store import arithmetic
+    from drake_cert.threads import available_cores
+
+    info = arithmetic(precision)
+    return dict(cpu=info["cpu"], cpu_flags=info["cpu_flags"], cores=available_cores())
+
+
 def log_run(path, entry: dict) -> list[dict]:
     """Append ``entry`` to the store's list of invocations (atomically); the whole list."""
     from drake_cert.io import atomic_write_text
@@ -253,7 +262,8 @@ def _write_reproduction(args, config, out, store, designs, outcome: _Outcome) ->
 
     runs = log_run(out / "store" / "runs.json", dict(
         started, wall_s=round(wall, 1), cpu_s=cpu, executor=args.executor,
-        workers=args.workers if args.executor == "ray" else 1, frames_done=done))
+        workers=args.workers if args.executor == "ray" else 1, frames_done=done,
+        machine=_machine(config.precision)))
     summary = tables.summarize(rows, config.eps, config.seed)
     # The frames' revisions lead: the tables are theirs; this invocation only wrote them. Its
     # revision is the one it started from: by now it has written files that may be tracked
@@ -263,7 +273,8 @@ def _write_reproduction(args, config, out, store, designs, outcome: _Outcome) ->
                 written_by_revision=written_by.pop("git_revision"), **written_by,
                 wall_s=round(wall, 1),
                 executor=args.executor, workers=args.workers if args.executor == "ray" else 1,
-                frame_cells=len(rows), frames_done=done, complete=complete,
+                machine=runs[-1]["machine"], frame_cells=len(rows), frames_done=done,
+                complete=complete,
                 total_wall_s=round(sum(r["wall_s"] for r in runs), 1),
                 total_cpu_s=_total_cpu(runs),
                 # every stored part's CPU, stopped invocations included ({}: made before it)
