@@ -61,7 +61,8 @@ def evaluate(preset: str, root: str | None, args, table) -> dict:
           file=sys.stderr)
     calib = calibrate_conformal(
         smooth, cal.images, cal.stiffness_n_per_rad.tolist(), cal.labels.tolist(),
-        sampling=CalibrationSampling(n=args.n, batch_size=args.n, seed=args.seed),
+        sampling=CalibrationSampling(n=calibration_n(args), batch_size=calibration_n(args),
+                                     seed=args.seed),
         alpha_c=args.alpha_c)
     envelope = table.hull(table.preset(preset).labels)
     candidates = median_candidates(label_range_designs(table, preset), calib.beta, envelope)
@@ -91,6 +92,11 @@ def evaluate(preset: str, root: str | None, args, table) -> dict:
     return out
 
 
+def calibration_n(args) -> int:
+    """Samples a calibration frame: ``--calibration-n``, else the certificate's n."""
+    return args.calibration_n or args.n
+
+
 def _evaluate_one(job) -> dict:
     preset, root, args = job
     torch.set_num_threads(args.threads)
@@ -110,7 +116,8 @@ def markdown(results: dict, args) -> str:
         "",
         f"Made by `python benchmarks/regressor_intervals.py {' '.join(sys.argv[1:])}` "
         f"(torch fp32, one thread a process). Settings: sigma = {args.sigma:g}, eps = "
-        f"{args.eps:g}, n = {args.n} samples a frame (certificate and calibration), alpha = "
+        f"{args.eps:g}, n = {args.n} samples a frame (certificate), {calibration_n(args)} "
+        "(calibration), alpha = "
         f"0.001, alpha_c = {args.alpha_c:g}, alpha_m = 0.001 (guarantee "
         f"{1 - 0.002 - args.alpha_c:.3f}); {args.calibration_per_class} calibration frames a "
         f"label; the first {args.test_per_class} test frames of each label; attacks: L2 PGD, "
@@ -148,6 +155,8 @@ def main() -> None:
     parser.add_argument("--sigma", type=float, default=0.25, help="the models' noise level")
     parser.add_argument("--eps", type=float, default=0.25)
     parser.add_argument("--n", type=int, default=500)
+    parser.add_argument("--calibration-n", type=int, default=None,
+                        help="samples a calibration frame (default: --n)")
     parser.add_argument("--attacks", nargs="*", default=["sa", "ea"])
     parser.add_argument("--attack-steps", type=int, default=10)
     parser.add_argument("--seed", type=int, default=0)
