@@ -35,9 +35,10 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--sweep-eps", type=float, nargs="+", default=None,
                         help="budgets of the sweep (default: 0 0.25 0.5 1 1.5 2; --quick: eps)")
     parser.add_argument("--calibration-per-class", type=int, default=None,
-                        help="conformal calibration frames per label (default: 100, quick 6)")
+                        help="h's conformal calibration frames per label (default: 400, "
+                             "quick 6)")
     parser.add_argument("--calibration-n", type=int, default=None,
-                        help="samples per calibration frame (default: 1000, quick 100)")
+                        help="samples per h calibration frame (default: 500, quick 100)")
     parser.add_argument("--interval", default=None, help=argparse.SUPPRESS)  # gone: says so
     parser.add_argument("--conformal-per-class", type=int, default=None,
                         help="robust conformal calibration frames per label of g_conformal "

@@ -64,8 +64,12 @@ class ReproduceConfig:
     attack_noise_draws: int = 8
     regression: bool = True  # the regression pipelines f_reg and h
     conformal: bool = True  # the pipeline g_conformal (g's certificates, robust conformal interval)
-    calibration_per_class: int = 100  # conformal calibration frames per label
-    calibration_n: int = 1000  # samples per calibration frame
+    # h's conformal beta: calibration frames per label and samples per frame. At alpha_c 0.01 a
+    # label's beta is its ceil(0.99 (m + 1))-th smallest score: with m = 100 the largest, with
+    # 400 the 4th largest (carla-like sigma 0.25: run-time beta 11.3 kN/rad with 100 frames at
+    # n 1,000, 6.2 with 400 at n 500; docs/results.md)
+    calibration_per_class: int = 400
+    calibration_n: int = 500
     alpha_c: float = 0.01
     alpha_m: float = 0.001
     # g_conformal's calibration is the drive's (docs/design.md 3.6), with the drive's defaults:
