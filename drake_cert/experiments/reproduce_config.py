@@ -130,7 +130,7 @@ class ReproduceConfig:
         """A few frames per cell, small n, one budget: the CI-sized run (< 2 min on 2 cores).
 
         Its robust conformal calibration (6 frames per label, 50 samples each, one stiffness
-        bin a label, miss target 0.5 at delta_cal 0.1: the fewest frames that give a
+        bin a label, miss target 0.5 at delta_cal 0.1, which need 5 frames a bin for a
         threshold) checks the plumbing of that pipeline, not its coverage."""
         return ReproduceConfig(sigmas=(0.25, 0.5, 1.0), eps=0.25, sweep_eps=(0.25,),
                                sweep_sigma=0.25, frames=2, n0=20, n=200, batch_size=200,
