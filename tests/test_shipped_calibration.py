@@ -108,6 +108,23 @@ def test_the_reproduction_calibrates_g_conformal_as_the_drive_does(preset, monke
     assert ours.delta_cal == drive.delta_cal and ours.bins == drive.bins
 
 
+def test_every_classifier_the_reproduction_certifies_with_has_its_votes_shipped():
+    """The default reproduction (fp32, ONNX Runtime) finds the votes of every (preset, sigma) it
+    calibrates g_conformal at shipped beside the model, drawn for exactly its spec (the model
+    file's digest included), so a regeneration draws none."""
+    from drake_cert.experiments.calibrations import conformal_scenario, conformal_sigmas
+    from drake_cert.experiments.reproduce_config import ReproduceConfig
+
+    config, conditions = ReproduceConfig(precision="fp32", backend="onnxruntime"), \
+        load_conditions()
+    for preset in config.presets:
+        for sigma in conformal_sigmas(config):
+            spec = driving.conformal_votes_spec(conformal_scenario(config, preset, sigma),
+                                                conditions)
+            shipped = read_shipped(model_path(preset, "classify", sigma))
+            assert shipped is not None and shipped.spec == spec, (preset, sigma)
+
+
 def test_calibrate_prints_each_bins_threshold_and_bound_from_the_shipped_votes(capsys):
     from drake_cert.cli import main
 

@@ -133,20 +133,27 @@ def conformal_calibration(config: ReproduceConfig, preset: str, sigma: float, co
     evaluates it (the run's backend and precision)."""
     from drake_cert.certification.backends import evaluated_model
     from drake_cert.systems import driving
+
+    scenario = conformal_scenario(config, preset, sigma)
+    p = scenario.perception
+    model = evaluated_model(run_model(config, preset, "classify", sigma), backend=p.backend,
+                            precision=p.precision)
+    return driving.drive_conformal_calibration(model, scenario, conditions or load_conditions())
+
+
+def conformal_scenario(config: ReproduceConfig, preset: str, sigma: float):
+    """A scenario whose perception settings are the run's g_conformal calibration at (preset,
+    sigma): what :func:`conformal_calibration` hands the drive's calibration (the model on the
+    CPU, in the run's backend and precision)."""
     from drake_cert.systems.scenario import PerceptionSettings, Scenario
 
-    conditions = conditions or load_conditions()
     c = config
-    backend = c.backend if c.device == "cpu" else "torch"
-    scenario = Scenario(name="reproduce", perception=PerceptionSettings(
+    return Scenario(name="reproduce", perception=PerceptionSettings(
         preset=preset, task="classify", sigma=float(sigma), precision=c.precision,
-        backend=backend, conformal_frames_per_class=c.conformal_per_class,
-        conformal_calibration_n=c.conformal_n, conformal_alpha_c=c.conformal_alpha_c,
-        conformal_bins_per_label=c.conformal_bins_per_label,
+        backend=c.backend if c.device == "cpu" else "torch",
+        conformal_frames_per_class=c.conformal_per_class, conformal_calibration_n=c.conformal_n,
+        conformal_alpha_c=c.conformal_alpha_c, conformal_bins_per_label=c.conformal_bins_per_label,
         conformal_delta_cal=c.conformal_delta_cal))
-    model = evaluated_model(run_model(c, preset, "classify", sigma), backend=backend,
-                            precision=c.precision)
-    return driving.drive_conformal_calibration(model, scenario, conditions)
 
 
 class ConformalWorker:
