@@ -42,8 +42,8 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--interval", default=None, help=argparse.SUPPRESS)  # gone: says so
     parser.add_argument("--conformal-per-class", type=int, default=None,
                         help="robust conformal calibration frames per label of g_conformal "
-                             "(default 2000, the drive's: its votes ship beside the sigma-1 "
-                             "models; quick 6)")
+                             "(default 2000, the drive's: its votes ship beside the "
+                             "classifiers; quick 6)")
     parser.add_argument("--no-conformal", action="store_true",
                         help="leave out the pipeline g_conformal (g's certificates read by the "
                              "robust conformal interval) and its calibration")
