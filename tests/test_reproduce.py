@@ -127,6 +127,11 @@ def test_bad_reproduce_inputs_exit_2(tmp_path, capsys):
     blocker.write_text("x")
     assert main(["reproduce", "--quick", "--out", str(blocker / "sub")]) == 2
     assert main(["reproduce", "--quick", "--frames", "0", "--out", str(tmp_path)]) == 2
+    capsys.readouterr()
+    # too few g_conformal calibration frames for any threshold: refused before any is drawn
+    assert main(["reproduce", "--quick", "--conformal-per-class", "3", "--out",
+                 str(tmp_path)]) == 2
+    assert "conformal_per_class = 3" in capsys.readouterr().err
     store = tmp_path / "kept" / "store"
     store.mkdir(parents=True)
     assert main(["reproduce", "--quick", "--from-store", "--fresh", "--out",
