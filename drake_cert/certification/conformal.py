@@ -409,8 +409,8 @@ def sequential_label_set(classifier: SmoothedClassifier, x: torch.Tensor,
         if low[0] >= thresholds[lo] and low[1] >= thresholds[hi]:
             reason = "settled"
             break
-        if stopping.futility_z is not None and look < n_max and expected_to_stay(
-                counts, look, n_max, level, thresholds, stopping.futility_z)[[lo, hi]].all():
+        if z is not None and look < n_max and expected_to_stay(
+                counts, look, n_max, level, thresholds, z)[[lo, hi]].all():
             reason = "futile"
             break
     return ConformalDecision(tuple(int(i) for i in np.flatnonzero(members)), counts,

@@ -164,17 +164,17 @@ class ReproduceConfig:
             if not 0 < getattr(self, name) < 1:
                 raise ConfigError(f"{name} = {getattr(self, name)!r} must be in (0, 1)")
         if self.conformal:
-            self._check_conformal_frames()
+            self._check_conformal_frames(conditions)
         if self.seed < 0:
             raise ConfigError(f"seed = {self.seed} must be >= 0")
         check_device(self.device)
 
-    def _check_conformal_frames(self) -> None:
+    def _check_conformal_frames(self, conditions) -> None:
         """Refuse a g_conformal calibration whose bins are too short for any threshold (as a
         drive's settings are refused), before any vote is drawn."""
         from drake_cert.certification.pac_conformal import min_frames_per_bin
 
-        labels = max(len(load_conditions().preset(p).labels) for p in self.presets)
+        labels = max(len(conditions.preset(p).labels) for p in self.presets)
         bins = self.conformal_bins_per_label
         need = min_frames_per_bin(self.conformal_alpha_c,
                                   self.conformal_delta_cal / (labels * bins))
