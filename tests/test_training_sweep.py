@@ -130,7 +130,9 @@ def test_the_sweep_trains_certifies_writes_and_resumes(tmp_path, capsys):
                                             (["--sigma", "0.25", "--lambdas", "x"], "'x'"),
                                             (["--sigma", "0.25", "--tails", "0.25"], "q:beta"),
                                             (["--sigma", "0.25", "--widths", "0"],
-                                             "between 2 and 256")])
+                                             "between 2 and 256"),
+                                            (["--sigma", "0.25", "--pools", "3"],
+                                             "pixel-block sizes from")])
 def test_bad_sweep_options_give_one_line(tmp_path, capsys, extra, message):
     argv = ["sweep", "--preset", "rtk-like", "--root", str(tmp_path), *extra]
     try:

@@ -54,36 +54,33 @@ def _tails(text: str) -> tuple[tuple[float, float], ...]:
     return pairs
 
 
-def _widths(text: str) -> tuple[int, ...]:
+def _comma_ints(text: str, allowed, what: str) -> tuple[int, ...]:
+    """The comma-separated integers of ``text``, each passing ``allowed``; an argparse error
+    naming ``what`` otherwise."""
     import argparse
 
+    try:
+        values = tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        values = ()
+    if not values or not all(allowed(v) for v in values):
+        raise argparse.ArgumentTypeError(f"{text!r}: give {what}, comma-separated")
+    return values
+
+
+def _widths(text: str) -> tuple[int, ...]:
     from drake_cert.cli.train import WIDTH_RANGE
 
     lo, hi = WIDTH_RANGE
-    try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        values = ()
-    if not values or not all(lo <= v <= hi for v in values):
-        raise argparse.ArgumentTypeError(f"{text!r}: give channel counts between {lo} and {hi}, "
-                                         "comma-separated (train's --width)")
-    return values
+    return _comma_ints(text, lambda v: lo <= v <= hi,
+                       f"channel counts between {lo} and {hi} (train's --width)")
 
 
 def _pools(text: str) -> tuple[int, ...]:
-    import argparse
-
     from drake_cert.cli.train import POOLS
 
-    try:
-        values = tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        values = ()
-    if not values or not all(v in POOLS for v in values):
-        raise argparse.ArgumentTypeError(f"{text!r}: give pixel-block sizes from "
-                                         f"{', '.join(map(str, POOLS))}, comma-separated "
-                                         "(train's --pool)")
-    return values
+    return _comma_ints(text, lambda v: v in POOLS,
+                       f"pixel-block sizes from {', '.join(map(str, POOLS))} (train's --pool)")
 
 
 def configure(parser) -> None:
