@@ -133,8 +133,10 @@ def _missing(what: str) -> dict:
 
 # -- reading a preset's rows --------------------------------------------------------------
 
-def _cell(mine: list[dict], pipeline: str, attack: str, eps=None, sigma=None) -> list[dict]:
-    """One cell's rows (a clean cell: at any budget, the first one the run holds)."""
+def _claim_cell(mine: list[dict], pipeline: str, attack: str, eps=None, sigma=None) -> list[dict]:
+    """One cell's rows as a claim reads them: an attacked cell at ``eps``; a clean cell at any
+    budget, the first one the run holds (clean rows repeat per budget). Unlike
+    ``claims._cell``, whose ``eps=None`` takes every budget."""
     cell = [r for r in mine if r["pipeline"] == pipeline and r["attack"] == attack
             and (sigma is None or r["sigma"] == sigma)]
     if attack == "none":
@@ -190,7 +192,7 @@ def _zero(s: dict) -> str:
 
 def f_stable_clean(mine, _eps, _pipe, pipeline="f"):
     """``pipeline`` never leaves its lane without attack."""
-    clean = _left(_cell(mine, pipeline, "none"))
+    clean = _left(_claim_cell(mine, pipeline, "none"))
     if not clean["total"]:
         return _missing(f"{pipeline} clean rows")
     return _row(_zero(clean), f"left clean {_pct(clean)}", clean_left_lane=clean)
@@ -198,8 +200,8 @@ def f_stable_clean(mine, _eps, _pipe, pipeline="f"):
 
 def f_accuracy_drops(mine, eps, _pipe):
     """f's share of frames labelled right under SA and under EA each below the clean share."""
-    clean = _right(_cell(mine, "f", "none"))
-    sa, ea = (_right(_cell(mine, "f", a, eps)) for a in ("sa", "ea"))
+    clean = _right(_claim_cell(mine, "f", "none"))
+    sa, ea = (_right(_claim_cell(mine, "f", a, eps)) for a in ("sa", "ea"))
     if not (clean["total"] and sa["total"] and ea["total"]):
         return _missing("f rows clean and under both attacks")
     return _row(worst([share_verdict(sa, clean), share_verdict(ea, clean)]),
@@ -209,7 +211,8 @@ def f_accuracy_drops(mine, eps, _pipe):
 
 def f_unstable_under_sa(mine, eps, _pipe, pipeline="f"):
     """``pipeline``'s share of SA episodes that left the lane above its clean share."""
-    clean, sa = _left(_cell(mine, pipeline, "none")), _left(_cell(mine, pipeline, "sa", eps))
+    clean = _left(_claim_cell(mine, pipeline, "none"))
+    sa = _left(_claim_cell(mine, pipeline, "sa", eps))
     if not clean["total"] or not sa["total"]:
         return _missing(f"{pipeline} rows clean and under SA")
     return _row(share_verdict(clean, sa), f"left clean {_pct(clean)}, SA {_pct(sa)}",
@@ -219,7 +222,8 @@ def f_unstable_under_sa(mine, eps, _pipe, pipeline="f"):
 def slowdown(mine: list[dict], pipeline: str, eps: float) -> dict:
     """How much EA at ``eps`` slows ``pipeline`` (sigma 0): clean minus EA speed per frame
     (:func:`paired_difference`, m/s) with both mean speeds."""
-    clean, ea = _speeds(_cell(mine, pipeline, "none")), _speeds(_cell(mine, pipeline, "ea", eps))
+    clean = _speeds(_claim_cell(mine, pipeline, "none"))
+    ea = _speeds(_claim_cell(mine, pipeline, "ea", eps))
     return dict(paired_difference(clean, ea), clean_mps=_mean(clean), ea_mps=_mean(ea))
 
 
@@ -235,7 +239,7 @@ def f_slower_under_ea(mine, eps, _pipe, pipeline="f"):
 
 def rtk_least_vulnerable(rows, eps, _pipe):
     """Across presets: f's SA departure share on rtk-like below each other preset's."""
-    left = {p: _left(_cell([r for r in rows if r["preset"] == p], "f", "sa", eps))
+    left = {p: _left(_claim_cell([r for r in rows if r["preset"] == p], "f", "sa", eps))
             for p in dict.fromkeys(r["preset"] for r in rows)}
     if not left.get("rtk-like", {}).get("total") or len(left) < 2:
         return [dict(where="rtk-like", **_missing("f rows under SA on rtk-like and another "
@@ -250,11 +254,11 @@ def rtk_least_vulnerable(rows, eps, _pipe):
 def g_less_unstable(mine, eps, pipe, baseline="f"):
     """At every sigma, ``pipe``'s SA departure share below ``baseline``'s (every SA episode:
     an abstention drives the envelope); a tie of zeros is not informative."""
-    base = _left(_cell(mine, baseline, "sa", eps))
+    base = _left(_claim_cell(mine, baseline, "sa", eps))
     sigmas = _sigmas(mine, pipe, "sa", eps)
     if not base["total"] or not sigmas:
         return _missing(f"{baseline} and {pipe} rows under SA")
-    per = {s: _left(_cell(mine, pipe, "sa", eps, s)) for s in sigmas}
+    per = {s: _left(_claim_cell(mine, pipe, "sa", eps, s)) for s in sigmas}
     by = {f"{s:g}": dict(g, verdict=NOT_INFORMATIVE if g["hits"] == base["hits"] == 0
                          else share_verdict(g, base)) for s, g in per.items()}
     return _row(worst(v["verdict"] for v in by.values()),
@@ -270,7 +274,7 @@ def best_sigma(mine, eps, pipe):
     paper = PAPER_BEST_SIGMA.get(mine[0]["preset"])
     if len(sigmas) < 2 or paper not in sigmas:
         return _missing(f"{pipe} under SA at two or more sigmas, the paper's best among them")
-    per = {s: _left(_cell(mine, pipe, "sa", eps, s)) for s in sigmas}
+    per = {s: _left(_claim_cell(mine, pipe, "sa", eps, s)) for s in sigmas}
     fewest = min(v["hits"] for v in per.values())
     best = [s for s, v in per.items() if v["hits"] == fewest]
     text = (f"fewest SA departures at sigma {' / '.join(f'{s:g}' for s in best)} (the paper's "
@@ -294,11 +298,11 @@ def g_at_least_as_fast(mine, eps, pipe, baseline="f"):
     sigmas = _sigmas(mine, pipe, "ea", eps)
     if not slow["frames"] or not sigmas:
         return _missing(f"{baseline} (clean and under EA) and {pipe} rows under EA")
-    base = _speeds(_cell(mine, baseline, "ea", eps))
+    base = _speeds(_claim_cell(mine, baseline, "ea", eps))
     moved = slow["ci95"][0] > 0
     by = {}
     for s in sigmas:
-        cell = _cell(mine, pipe, "ea", eps, s)
+        cell = _claim_cell(mine, pipe, "ea", eps, s)
         d = paired_difference(_speeds(cell), base)
         by[f"{s:g}"] = dict(d, ea_mps=_mean(_speeds(cell)),
                             certified=sum(bool(r["certified"]) for r in cell),
@@ -331,8 +335,8 @@ def f_reg_slower_under_ea(mine, eps, pipe):
 def f_reg_error_grows(mine, eps, _pipe):
     """f_reg's squared stiffness error ((kN/rad)^2) under SA and under EA each above the clean
     one, frame by frame."""
-    clean = _sq_errors_kn2(_cell(mine, "f_reg", "none"))
-    grows = {a: paired_difference(_sq_errors_kn2(_cell(mine, "f_reg", a, eps)), clean)
+    clean = _sq_errors_kn2(_claim_cell(mine, "f_reg", "none"))
+    grows = {a: paired_difference(_sq_errors_kn2(_claim_cell(mine, "f_reg", a, eps)), clean)
              for a in ("sa", "ea")}
     if not all(d["frames"] for d in grows.values()):
         return _missing("f_reg rows clean and under both attacks")
@@ -346,12 +350,12 @@ def f_reg_error_grows(mine, eps, _pipe):
 def h_stable_under_sa(mine, eps, _pipe):
     """No SA episode of h leaves its lane, at every sigma; not informative where SA moves no
     f_reg episode out of its lane either."""
-    base = _left(_cell(mine, "f_reg", "sa", eps))
+    base = _left(_claim_cell(mine, "f_reg", "sa", eps))
     sigmas = _sigmas(mine, "h", "sa", eps)
     if not base["total"] or not sigmas:
         return _missing("f_reg and h rows under SA")
-    by = {f"{s:g}": dict(_left(_cell(mine, "h", "sa", eps, s)), certified=sum(
-        bool(r["certified"]) for r in _cell(mine, "h", "sa", eps, s))) for s in sigmas}
+    by = {f"{s:g}": dict(_left(_claim_cell(mine, "h", "sa", eps, s)), certified=sum(
+        bool(r["certified"]) for r in _claim_cell(mine, "h", "sa", eps, s))) for s in sigmas}
     verdict = worst(_zero(v) for v in by.values()) if base["hits"] else NOT_INFORMATIVE
     return _row(verdict, f"left under SA: f_reg {_pct(base)}; h " + "; ".join(
         f"sigma {s} {_pct(v)} ({v['certified']} certified)" for s, v in by.items()),
@@ -539,14 +543,14 @@ def ea_attack_strength(rows: list[dict]) -> list[dict]:
         mine = [r for r in rows if r["preset"] == preset and r["pipeline"] == "f"]
         if not mine:
             continue
-        clean = _cell(mine, "f", "none")
+        clean = _claim_cell(mine, "f", "none")
         floor = min(float(r["velocity_mps"]) for r in mine)
         budgets = sorted({r["eps"] for r in mine if r["attack"] == "ea"})
         possible = _mean(_speeds(clean)) - floor
         by = {}
         for e in budgets:
             slow = slowdown(mine, "f", e)
-            by[f"{e:g}"] = dict(slowdown_mps=slow, accuracy=_right(_cell(mine, "f", "ea", e)),
+            by[f"{e:g}"] = dict(slowdown_mps=slow, accuracy=_right(_claim_cell(mine, "f", "ea", e)),
                                 of_possible=slow["mean"] / possible if possible > 0
                                 else math.nan)
         out.append(dict(preset=preset, clean_mps=_mean(_speeds(clean)),
