@@ -118,13 +118,37 @@ def with_conformal(rows, *, left=False, ea_v=9.0):
 
 
 def test_claims_three_and_four_are_checked_for_the_conformal_interval_too():
-    rows = frame(0) + frame(1, f_left=False)
-    holds = check_claims(with_conformal(rows), 0.25)["p"]["holds"]
-    assert holds["g_conformal_zero_instability_inside_certificates"] is True
+    """g_conformal's claim 3 is its per-frame guarantee: its certified ranges miss the true
+    label in at most p of the episodes (the misses' 95% upper end within p); a departure alone
+    does not break it, since one frame has no counting of looks."""
+    rows = [r for k in range(40) for r in frame(k, f_left=k == 0)]
+    holds = check_claims(with_conformal(rows), 0.25, 0.25)["p"]["holds"]
+    assert holds["g_conformal_misses_within_its_per_frame_bound"] is True
     assert holds["g_conformal_keeps_80pct_speed_under_ea"] is True
-    broken = check_claims(with_conformal(rows, left=True, ea_v=6.0), 0.25)["p"]["holds"]
-    assert broken["g_conformal_zero_instability_inside_certificates"] is False
-    assert broken["g_conformal_keeps_80pct_speed_under_ea"] is False
-    assert broken["g_zero_instability_inside_certificates"] is True  # g itself unchanged
-    assert "g_conformal_zero_instability_inside_certificates" not in check_claims(
-        rows, 0.25)["p"]["holds"]  # a run without the pipeline has no such verdict
+    departing = check_claims(with_conformal(rows, left=True), 0.25, 0.25)["p"]
+    assert departing["holds"]["g_conformal_misses_within_its_per_frame_bound"] is True
+    assert departing["g_conformal_inside_certificate"]["hits"] == 40  # reported, not judged
+    missing = with_conformal(rows, ea_v=6.0)
+    for r in missing:  # 10 of the 80 attacked certified episodes: the range misses "dry"
+        if r["pipeline"] == "g_conformal" and r["attack"] == "sa" and r["position"] < 10:
+            r["design_labels"] = "wet"
+    broken = check_claims(missing, 0.25, 0.25)["p"]
+    assert broken["g_conformal_certified_range_misses_true_label"]["hits"] == 10
+    assert broken["g_conformal_certified_range_misses_true_label"]["ci95_pct"][1] < 25.0
+    assert broken["holds"]["g_conformal_misses_within_its_per_frame_bound"] is True
+    tight = check_claims(missing, 0.25, 0.1)["p"]["holds"]  # 12.5% observed against p = 10%
+    assert tight["g_conformal_misses_within_its_per_frame_bound"] is False
+    assert broken["holds"]["g_conformal_keeps_80pct_speed_under_ea"] is False
+    assert broken["holds"]["g_zero_instability_inside_certificates"] is True  # g unchanged
+    assert "g_conformal_misses_within_its_per_frame_bound" not in check_claims(
+        with_conformal(rows), 0.25)["p"]["holds"]  # without a bound there is no such verdict
+    assert "g_conformal_misses_within_its_per_frame_bound" not in check_claims(
+        rows, 0.25, 0.25)["p"]["holds"]  # a run without the pipeline has no such verdict
+    assert "(p = 25.00%)" in markdown({"p": broken}, 0.25)
+
+
+def test_the_conformal_miss_bound_is_the_calibration_target_plus_the_smoothing_levels():
+    from drake_cert.experiments.claims import conformal_miss_bound
+    from drake_cert.experiments.reproduce_config import ReproduceConfig
+
+    assert abs(conformal_miss_bound(ReproduceConfig()) - 0.252) < 1e-12

@@ -109,9 +109,9 @@ def test_pipelines_are_counted_by_whatever_name_they_carry():
     assert find(result, "f", preset="q")["episodes"] == 5
     assert find(result, "g", "SA eps = 0.25", "p")["episodes"] == 5
     text = hl.markdown(result, main_eps=0.25, names=hl.display_names("safe_set"))
-    assert "g (robust conformal interval: the certified pipeline)" in text
+    assert "g (robust conformal interval, the drive's calibration)" in text
     assert "g (safe-set interval: the paper's, assumes g right on the clean frame)" in text
-    assert text.index("the certified pipeline") < text.index("safe-set interval")  # it leads
+    assert text.index("the drive's") < text.index("safe-set interval")  # it leads
 
 
 def test_frame_rows_read_back_from_csv_as_written(tmp_path):

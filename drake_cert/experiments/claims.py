@@ -17,6 +17,14 @@ preset, over the frames the run holds (1-2 the paper's, 3-4 the project's own cr
    labels of the design it selected) holds the frame's true label or misses it;
 4. g keeps at least 80% of its clean speed under EA at the main budget, per sigma.
 
+For g_conformal (the same certificates read by the robust conformal interval with the drive's
+calibration) claim 3 is the guarantee that interval makes for one frame: its certified label
+range misses the true label in at most the calibration's per-frame bound p (``miss_bound``,
+DESIGN 3.6; 0.25 plus the smoothing bounds' levels with the drive's settings), checked as "the
+upper end of the misses' 95% Clopper-Pearson interval is within p". It does not promise 0%
+instability for a single frame: the drive's promise comes from counting many looks (DESIGN 6.3),
+which a one-frame episode does not have, so its departures are reported, not judged.
+
 Shares carry their 95% two-sided Clopper-Pearson interval (claim 3's upper bound is its upper
 end), counted over episodes as if independent; the headline's intervals are the ones that
 account for departures clustering on frames (DESIGN 7.3).
@@ -94,37 +102,46 @@ def _g_certified(mine: list[dict], main_eps: float) -> tuple[list, list, list, l
     return certified, right, holds_truth, departures
 
 
-def _conformal_claims(mine: list[dict], main_eps: float) -> tuple[dict, dict]:
+def _conformal_claims(mine: list[dict], main_eps: float,
+                      miss_bound: float | None) -> tuple[dict, dict]:
     """Claims 3 and 4 for g_conformal (the same certificates read by the robust conformal
-    interval): the figures and the claims' verdicts, both empty without g_conformal rows."""
+    interval): the figures and the claims' verdicts, both empty without g_conformal rows.
+    Claim 3 is judged against ``miss_bound`` (the calibration's per-frame miss bound p), and
+    not at all without one."""
     conformal = [r for r in mine if r["pipeline"] == "g_conformal" and r["attack"] != "none"
                  and r["certified"]]
     conformal_kept = {str(s): v for s, v in _speed_kept(mine, "g_conformal", main_eps).items()}
     if not conformal_kept:
         return {}, {}
+    misses = _share(sum(not holds_true_label(r) for r in conformal), len(conformal))
     figures = dict(
         g_conformal_inside_certificate=_share(sum(r["left_lane"] for r in conformal),
                                               len(conformal)),
-        g_conformal_certified_range_misses_true_label=_share(
-            sum(not holds_true_label(r) for r in conformal), len(conformal)),
+        g_conformal_certified_range_misses_true_label=misses,
+        g_conformal_miss_bound=miss_bound,
         g_conformal_ea_speed_kept=conformal_kept)
-    holds = dict(
-        g_conformal_zero_instability_inside_certificates=not any(
-            r["left_lane"] for r in conformal),
-        g_conformal_keeps_80pct_speed_under_ea=all(
-            v["kept"] >= SPEED_KEPT for v in conformal_kept.values()))
+    holds = {}
+    if miss_bound is not None:
+        holds["g_conformal_misses_within_its_per_frame_bound"] = \
+            misses["ci95_pct"][1] <= 100.0 * miss_bound
+    holds["g_conformal_keeps_80pct_speed_under_ea"] = all(
+        v["kept"] >= SPEED_KEPT for v in conformal_kept.values())
     return figures, holds
 
 
-def check_claims(rows: list[dict], main_eps: float) -> dict:
-    """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`)."""
+def check_claims(rows: list[dict], main_eps: float, conformal_miss_bound: float | None = None
+                 ) -> dict:
+    """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`);
+    ``conformal_miss_bound``: g_conformal's per-frame miss bound p, which its claim 3 is judged
+    against (:func:`conformal_miss_bound`)."""
     out = {}
     for preset in dict.fromkeys(r["preset"] for r in rows):
         mine = [r for r in rows if r["preset"] == preset]
         f_clean, f_sa, f_ea = _f_claims(mine)
         certified, right, holds_truth, departures = _g_certified(mine, main_eps)
         kept = _speed_kept(mine, "g", main_eps)
-        with_conformal, conformal_holds = _conformal_claims(mine, main_eps)
+        with_conformal, conformal_holds = _conformal_claims(mine, main_eps,
+                                                             conformal_miss_bound)
         out[preset] = dict(
             frames=len({r["position"] for r in mine}),
             f_clean_velocity_mps=f_clean,
@@ -193,8 +210,11 @@ def markdown(claims: dict, main_eps: float) -> str:
     if conformal:  # the same certificates, read by the robust conformal interval
         lines += [row("g_conformal (robust conformal interval): left the lane",
                       lambda c: pct(c["g_conformal_inside_certificate"])),
-                  row("g_conformal: certified label range misses the true label",
-                      lambda c: pct(c["g_conformal_certified_range_misses_true_label"]))]
+                  row("g_conformal: certified label range misses the true label (its "
+                      "guarantee: at most the calibration's per-frame bound p)",
+                      lambda c: pct(c["g_conformal_certified_range_misses_true_label"])
+                      + (f" (p = {100 * c['g_conformal_miss_bound']:.2f}%)"
+                         if c.get("g_conformal_miss_bound") is not None else ""))]
     lines += ["", f"**4. g's speed under EA at eps = {main_eps:g}, share of its clean speed** "
               f"(our criterion: >= {SPEED_KEPT:.0%})", "", head]
     lines += [row(f"sigma = {s:g}", lambda c, s=s: "{:.2f} / {:.2f} m/s = {:.0%}".format(
@@ -227,8 +247,18 @@ def markdown(claims: dict, main_eps: float) -> str:
     return "\n".join(lines) + "\n"
 
 
+def conformal_miss_bound(config) -> float:
+    """The per-frame miss bound p that a reproduction's g_conformal calibration promises at
+    most: its target ``conformal_alpha_c`` plus the smoothing bounds' levels beta_cal and
+    beta_test (DESIGN 3.6). The calibration's own alpha_c is its largest bin bound, within the
+    target, so this p bounds the calibrated one."""
+    from drake_cert.certification.conformal import BETA_CAL, BETA_TEST
+
+    return float(config.conformal_alpha_c) + BETA_CAL + BETA_TEST
+
+
 def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headline.RESAMPLES,
-                    seed: int = headline.SEED) -> dict:
+                    seed: int = headline.SEED, conformal_miss_bound: float | None = None) -> dict:
     """What ``claims.json`` holds, in this order: ``headline`` (:func:`headline.headline`),
     ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), ``paper_claims``
     (one verdict per claim of the paper at its budget, :func:`paper_claims.paper_claims`), then
@@ -236,7 +266,7 @@ def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headl
     return dict(headline=headline.headline(rows, resamples=resamples, seed=seed),
                 truth_conditioned_diagnostic=headline.truth_conditioned(rows),
                 paper_claims=paper_claims.paper_claims(rows),
-                **check_claims(rows, main_eps))
+                **check_claims(rows, main_eps, conformal_miss_bound))
 
 
 def preset_claims(document: dict) -> dict:

@@ -249,7 +249,7 @@ def display_names(interval: str = "safe_set") -> dict[str, str]:
     return {"f": "f (non-robust)",
             "g": "g (robust conformal interval)" if interval == "conformal"
             else "g (safe-set interval: the paper's, assumes g right on the clean frame)",
-            "g_conformal": "g (robust conformal interval: the certified pipeline)",
+            "g_conformal": "g (robust conformal interval, the drive's calibration)",
             "f_reg": "f_reg (non-robust regressor)", "h": "h (median-smoothed regressor)"}
 
 
@@ -268,7 +268,7 @@ def _share_text(s: dict) -> str:
             f"[{lo:.2f}, {hi:.2f}]{mark}")
 
 
-# The order pipelines are shown in: the assumption-free certified pipeline before the paper's.
+# The order pipelines are shown in: the assumption-free interval (the drive's) before the paper's.
 SHOWN_ORDER = ("f", "g_conformal", "g", "f_reg", "h")
 
 

@@ -49,7 +49,9 @@ def write_results(out_dir: str | Path, results: RunResults, config, conditions,
     rows, summary, meta = results.rows, results.summary, results.meta
 
     out = Path(out_dir)
-    checked = claims.claims_document(rows, config.eps)
+    checked = claims.claims_document(
+        rows, config.eps, conformal_miss_bound=claims.conformal_miss_bound(config)
+        if config.conformal else None)
     written = [
         atomic_write_text(out / "results.csv", tables.to_csv(summary)),
         atomic_write_text(out / "frames.csv", tables.to_csv(rows, FRAME_COLUMNS)),
