@@ -319,7 +319,11 @@ def _theta(vehicle, design, stiffness, speed):
 def _output_row(a_m, b_m) -> np.ndarray:
     """Row r with ``r b_m = 1`` and ``r v`` the input with v's steady-state e1 (by lstsq)."""
     x, *_ = np.linalg.lstsq(a_m.T, np.eye(4)[0], rcond=None)  # x' = e1' A_m^-1
-    return x / float(x @ b_m)
+    gain = float(x @ b_m)
+    if not np.isfinite(gain) or abs(gain) < 1e-12:
+        raise np.linalg.LinAlgError("A_m is singular along b_m: the input has no steady-state "
+                                    "e1 to normalise the output row by")
+    return x / gain
 
 
 def _filter_row(vehicle, design, stiffness, speed) -> np.ndarray:

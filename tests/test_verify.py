@@ -55,6 +55,7 @@ def test_synthesized_table_round_trips_and_passes_verify(default_design_table, t
         in out.err
 
 
+@pytest.mark.filterwarnings("error::RuntimeWarning")  # no NaN arithmetic on the way
 def test_unstabilising_gain_fails_naming_gain_decay(table_file, tmp_path, capsys):
     def edit(raw):
         raw["designs"][0]["k_m"] = [0.0, 0.0, 0.0, 0.0]
