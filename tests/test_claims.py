@@ -122,33 +122,47 @@ def test_claims_three_and_four_are_checked_for_the_conformal_interval_too():
     label in at most p of the episodes (the misses' 95% upper end within p); a departure alone
     does not break it, since one frame has no counting of looks."""
     rows = [r for k in range(40) for r in frame(k, f_left=k == 0)]
-    holds = check_claims(with_conformal(rows), 0.25, 0.25)["p"]["holds"]
+    holds = check_claims(with_conformal(rows), 0.25, {"p": 0.25})["p"]["holds"]
     assert holds["g_conformal_misses_within_its_per_frame_bound"] is True
     assert holds["g_conformal_keeps_80pct_speed_under_ea"] is True
-    departing = check_claims(with_conformal(rows, left=True), 0.25, 0.25)["p"]
+    departing = check_claims(with_conformal(rows, left=True), 0.25, {"p": 0.25})["p"]
     assert departing["holds"]["g_conformal_misses_within_its_per_frame_bound"] is True
     assert departing["g_conformal_inside_certificate"]["hits"] == 40  # reported, not judged
     missing = with_conformal(rows, ea_v=6.0)
     for r in missing:  # 10 of the 80 attacked certified episodes: the range misses "dry"
         if r["pipeline"] == "g_conformal" and r["attack"] == "sa" and r["position"] < 10:
             r["design_labels"] = "wet"
-    broken = check_claims(missing, 0.25, 0.25)["p"]
+    broken = check_claims(missing, 0.25, {"p": 0.25})["p"]
     assert broken["g_conformal_certified_range_misses_true_label"]["hits"] == 10
     assert broken["g_conformal_certified_range_misses_true_label"]["ci95_pct"][1] < 25.0
     assert broken["holds"]["g_conformal_misses_within_its_per_frame_bound"] is True
-    tight = check_claims(missing, 0.25, 0.1)["p"]["holds"]  # 12.5% observed against p = 10%
+    tight = check_claims(missing, 0.25, {"p": 0.1})["p"]["holds"]  # 12.5% observed against p = 10%
     assert tight["g_conformal_misses_within_its_per_frame_bound"] is False
     assert broken["holds"]["g_conformal_keeps_80pct_speed_under_ea"] is False
     assert broken["holds"]["g_zero_instability_inside_certificates"] is True  # g unchanged
     assert "g_conformal_misses_within_its_per_frame_bound" not in check_claims(
         with_conformal(rows), 0.25)["p"]["holds"]  # without a bound there is no such verdict
     assert "g_conformal_misses_within_its_per_frame_bound" not in check_claims(
-        rows, 0.25, 0.25)["p"]["holds"]  # a run without the pipeline has no such verdict
+        with_conformal(rows), 0.25, {"q": 0.25})["p"]["holds"]  # nor with another preset's
+    assert "g_conformal_misses_within_its_per_frame_bound" not in check_claims(
+        rows, 0.25, {"p": 0.25})["p"]["holds"]  # a run without the pipeline has no such verdict
     assert "(p = 25.00%)" in markdown({"p": broken}, 0.25)
 
 
-def test_the_conformal_miss_bound_is_the_calibration_target_plus_the_smoothing_levels():
-    from drake_cert.experiments.claims import conformal_miss_bound
-    from drake_cert.experiments.reproduce_config import ReproduceConfig
+def test_each_presets_miss_bound_is_the_largest_bound_its_calibrations_promise():
+    """Claim 3 pools a preset's sigmas, so its p is the largest alpha_c + beta_cal + beta_test
+    of that preset's calibrations, each calibration's own (not the run's target)."""
+    from drake_cert.certification.conformal import BETA_CAL, BETA_TEST, RobustConformalCalibration
+    from drake_cert.experiments.claims import conformal_miss_bounds
 
-    assert abs(conformal_miss_bound(ReproduceConfig()) - 0.252) < 1e-12
+    def calibration(alpha_c, sigma):
+        return RobustConformalCalibration({0: 0.3, 1: 0.2}, {0: 50, 1: 50}, 2, sigma, 1000,
+                                          alpha_c)
+
+    bounds = conformal_miss_bounds({("p", 0.25): calibration(0.2481, 0.25),
+                                    ("p", 1.0): calibration(0.2490, 1.0),
+                                    ("q", 0.5): calibration(0.2410, 0.5)})
+    assert set(bounds) == {"p", "q"}
+    assert abs(bounds["p"] - (0.2490 + BETA_CAL + BETA_TEST)) < 1e-12
+    assert abs(bounds["q"] - (0.2410 + BETA_CAL + BETA_TEST)) < 1e-12
+    assert conformal_miss_bounds({}) == {}

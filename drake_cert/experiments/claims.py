@@ -129,19 +129,20 @@ def _conformal_claims(mine: list[dict], main_eps: float,
     return figures, holds
 
 
-def check_claims(rows: list[dict], main_eps: float, conformal_miss_bound: float | None = None
-                 ) -> dict:
+def check_claims(rows: list[dict], main_eps: float,
+                 conformal_miss_bounds: dict[str, float] | None = None) -> dict:
     """Claims 1-4 for every preset in ``rows`` (frame rows of :mod:`reproduce`);
-    ``conformal_miss_bound``: g_conformal's per-frame miss bound p, which its claim 3 is judged
-    against (:func:`conformal_miss_bound`)."""
+    ``conformal_miss_bounds``: per preset, g_conformal's per-frame miss bound p, which its
+    claim 3 is judged against (:func:`conformal_miss_bounds`); a preset without one gets no
+    claim-3 verdict."""
+    bounds = conformal_miss_bounds or {}
     out = {}
     for preset in dict.fromkeys(r["preset"] for r in rows):
         mine = [r for r in rows if r["preset"] == preset]
         f_clean, f_sa, f_ea = _f_claims(mine)
         certified, right, holds_truth, departures = _g_certified(mine, main_eps)
         kept = _speed_kept(mine, "g", main_eps)
-        with_conformal, conformal_holds = _conformal_claims(mine, main_eps,
-                                                             conformal_miss_bound)
+        with_conformal, conformal_holds = _conformal_claims(mine, main_eps, bounds.get(preset))
         out[preset] = dict(
             frames=len({r["position"] for r in mine}),
             f_clean_velocity_mps=f_clean,
@@ -247,18 +248,21 @@ def markdown(claims: dict, main_eps: float) -> str:
     return "\n".join(lines) + "\n"
 
 
-def conformal_miss_bound(config) -> float:
-    """The per-frame miss bound p that a reproduction's g_conformal calibration promises at
-    most: its target ``conformal_alpha_c`` plus the smoothing bounds' levels beta_cal and
-    beta_test (DESIGN 3.6). The calibration's own alpha_c is its largest bin bound, within the
-    target, so this p bounds the calibrated one."""
-    from drake_cert.certification.conformal import BETA_CAL, BETA_TEST
-
-    return float(config.conformal_alpha_c) + BETA_CAL + BETA_TEST
+def conformal_miss_bounds(calibrations: dict) -> dict[str, float]:
+    """Per preset, the per-frame miss bound p that its g_conformal calibrations promise: the
+    largest ``alpha_total`` (its largest bin bound alpha_c plus the smoothing bounds' levels
+    beta_cal and beta_test, DESIGN 3.6) over its sigmas, since claim 3 pools the sigmas.
+    ``calibrations``: ``{(preset, sigma): RobustConformalCalibration}``, as the run store keeps
+    them."""
+    out: dict[str, float] = {}
+    for (preset, _sigma), calibration in calibrations.items():
+        out[preset] = max(out.get(preset, 0.0), float(calibration.alpha_total))
+    return out
 
 
 def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headline.RESAMPLES,
-                    seed: int = headline.SEED, conformal_miss_bound: float | None = None) -> dict:
+                    seed: int = headline.SEED,
+                    conformal_miss_bounds: dict[str, float] | None = None) -> dict:
     """What ``claims.json`` holds, in this order: ``headline`` (:func:`headline.headline`),
     ``truth_conditioned_diagnostic`` (:func:`headline.truth_conditioned`), ``paper_claims``
     (one verdict per claim of the paper at its budget, :func:`paper_claims.paper_claims`), then
@@ -266,7 +270,7 @@ def claims_document(rows: list[dict], main_eps: float, *, resamples: int = headl
     return dict(headline=headline.headline(rows, resamples=resamples, seed=seed),
                 truth_conditioned_diagnostic=headline.truth_conditioned(rows),
                 paper_claims=paper_claims.paper_claims(rows),
-                **check_claims(rows, main_eps, conformal_miss_bound))
+                **check_claims(rows, main_eps, conformal_miss_bounds))
 
 
 def preset_claims(document: dict) -> dict:
