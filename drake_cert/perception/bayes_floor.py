@@ -80,9 +80,9 @@ def oracle_frames(conditions: ConditionsTable, preset: str, *, frames_per_class:
     contrast = CAMERA_CONTRAST.get(preset, 1.0)
     for k, cond in enumerate(table):
         lo, hi = cond.interval
-        draws = np.random.default_rng([int(seed), k])
+        stiffness_rng = np.random.default_rng([int(seed), k])
         for i in range(frames_per_class):
-            stiffness = lo + (hi - lo) * float(draws.random())
+            stiffness = lo + (hi - lo) * float(stiffness_rng.random())
             severity = float(severity_from_stiffness(torch.tensor(stiffness), lo, hi))
             scene = int(np.random.SeedSequence([int(seed), k, i, 1]).generate_state(
                 1, dtype=np.uint64)[0] >> 1)
