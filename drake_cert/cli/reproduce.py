@@ -281,9 +281,8 @@ def _write_reproduction(args, config, out, store, designs, outcome: _Outcome) ->
                 # every stored part's CPU, stopped invocations included ({}: made before it)
                 store_cpu_s=store.cpu(store.identity(config, designs)), runs=runs)
     bounds = claims.conformal_miss_bounds(store.conformal(store.identity(config, designs)))
-    written = outputs.write_results(out, outputs.RunResults(rows, summary, meta), config,
-                                    load_conditions(), plots=not args.no_plots, designs=designs,
-                                    conformal_miss_bounds=bounds)
+    written = outputs.write_results(out, outputs.RunResults(rows, summary, meta, bounds), config,
+                                    load_conditions(), plots=not args.no_plots, designs=designs)
     document = json.loads((out / "claims.json").read_text())
     holds = {p: c["holds"] for p, c in claims.preset_claims(document).items()}
     paper = document["paper_claims"]

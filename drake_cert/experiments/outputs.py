@@ -38,22 +38,22 @@ class RunResults:
     rows: list[dict]
     summary: list[dict]
     meta: dict
+    # per preset the bound p g_conformal's claim 3 is judged against
+    # (claims.conformal_miss_bounds of the run's calibrations; None: no such verdict)
+    conformal_miss_bounds: dict[str, float] | None = None
 
 
 def write_results(out_dir: str | Path, results: RunResults, config, conditions,
-                  plots: bool = True, designs: list | None = None,
-                  conformal_miss_bounds: dict[str, float] | None = None) -> list[Path]:
+                  plots: bool = True, designs: list | None = None) -> list[Path]:
     """Write every output file under ``out_dir``; returns their paths. ``designs``: the run's
-    design table, which ``traces.png`` drives (synthesized again when not given);
-    ``conformal_miss_bounds``: per preset the bound p g_conformal's claim 3 is judged against
-    (:func:`claims.conformal_miss_bounds` of the run's calibrations; without it, no verdict)."""
+    design table, which ``traces.png`` drives (synthesized again when not given)."""
     from drake_cert.experiments import claims
 
     rows, summary, meta = results.rows, results.summary, results.meta
 
     out = Path(out_dir)
     checked = claims.claims_document(rows, config.eps,
-                                     conformal_miss_bounds=conformal_miss_bounds)
+                                     conformal_miss_bounds=results.conformal_miss_bounds)
     written = [
         atomic_write_text(out / "results.csv", tables.to_csv(summary)),
         atomic_write_text(out / "frames.csv", tables.to_csv(rows, FRAME_COLUMNS)),
