@@ -19,9 +19,9 @@ preset, over the frames the run holds (1-2 the paper's, 3-4 the project's own cr
 
 For g_conformal (the same certificates read by the robust conformal interval with the drive's
 calibration) claim 3 is the guarantee that interval makes for one frame: its certified label
-range misses the true label in at most the calibration's per-frame bound p (``miss_bound``,
-DESIGN 3.6; 0.25 plus the smoothing bounds' levels with the drive's settings), checked as "the
-upper end of the misses' 95% Clopper-Pearson interval is within p". It does not promise 0%
+range misses the true label in at most the calibrations' own per-frame bound p
+(:func:`conformal_miss_bounds`, DESIGN 3.6; 0.2518-0.2519 with the drive's settings), checked
+as "the upper end of the misses' 95% Clopper-Pearson interval is within p". It does not promise 0%
 instability for a single frame: the drive's promise comes from counting many looks (DESIGN 6.3),
 which a one-frame episode does not have, so its departures are reported, not judged.
 
